@@ -1,0 +1,19 @@
+"""hybridjax: hybrid dynamical systems in JAX, batched and differentiable.
+
+A hybrid system H = (J, Gamma, D, F, G, R) is a set of `Mode`s (flows on domains) and
+`Transition`s (guards and resets), collected in a `HybridSystem`; `simulate` runs one
+execution of it (vmap it for thousands) and returns a `Solution`.
+"""
+
+from . import examples as examples
+from ._simulate import simulate as simulate
+from ._solution import Epoch as Epoch
+from ._solution import Solution as Solution
+from ._status import STATUS_NAMES as STATUS_NAMES
+from ._status import Status as Status
+from ._system import HybridSystem as HybridSystem
+from ._system import Mode as Mode
+from ._system import Transition as Transition
+from ._validation import DefinitionError as DefinitionError
+
+__version__ = "0.1.0"

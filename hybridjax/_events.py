@@ -1,0 +1,108 @@
+"""Event logic: the epoch-start test, crossing detection on a step, and root location.
+
+- Start of an epoch (API semantics 3): transition k fires at once when g_k < -band, or when
+  |g_k| <= band and g_k is *trending negative*: its first non-zero Lie derivative along the
+  flow is negative (seed eq. (7)). A guard inside the band that is not trending negative is
+  *departing*: it is disarmed (its previous value is taken as 0) until the flow has been seen
+  to leave it (g > 0), so that a bouncing ball does not re-fire after its reset.
+- Within a step (API semantics 2): each guard is sampled on the step's dense interpolant at
+  `interior_points` interior points and the end; a crossing is the first sample with g <= 0
+  after a sample with g > 0, so a guard that dips below zero and comes back inside one step
+  is caught (as DifferentialEquations.jl's `interp_points`).
+- Location: a bracketed Newton iteration on the interpolant, falling back to bisection,
+  stopping when the bracket is narrower than the event tolerance; the event time is the
+  bracket's right end, where g <= 0 (so the pre-event state lies in the guard set).
+"""
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+
+def trending_negative(L1, L2, L3, scale1, eps) -> jax.Array:
+    """First non-zero Lie derivative negative. L1 counts as zero below 64 eps * scale1."""
+    l1_nonzero = jnp.abs(L1) > 64 * eps * scale1
+    higher = jnp.where(L2 != 0, L2 < 0, L3 < 0)
+    return jnp.where(l1_nonzero, L1 < 0, higher)
+
+
+def start_decision(jets, outgoing, eps):
+    """Which guards fire at the start of an epoch, and the guards' starting values.
+
+    Returns `(fire, g_start)`: `fire` (K,) bool; `g_start` (K,) the value each guard starts
+    the epoch with, 0 for departing (disarmed) guards, +1 for guards not leaving the mode.
+    """
+    L0, band = jets["L0"], jets["band"]
+    in_band = jnp.abs(L0) <= band
+    neg = trending_negative(jets["L1"], jets["L2"], jets["L3"], jets["scale1"], eps)
+    fire = outgoing & ((L0 < -band) | (in_band & neg))
+    g_start = jnp.where(outgoing, jnp.where(L0 > band, L0, jnp.zeros_like(L0)), 1.0)
+    return fire, g_start
+
+
+def departure_step_bound(jets, outgoing, fire) -> jax.Array:
+    """A first step short enough to see a departing guard positive before it returns.
+
+    Along the Taylor polynomial g(s) = L0 + L1 s + L2 s^2 / 2 of a departing guard (L0 ~ 0,
+    L1 > 0, L2 < 0) the flow comes back into the guard at s = 2 L1 / |L2|; half of that,
+    so that an interior sample sees g > 0 (e.g. a ball bouncing with tiny velocity).
+    """
+    L0, L1, L2, band = jets["L0"], jets["L1"], jets["L2"], jets["band"]
+    departing = outgoing & (jnp.abs(L0) <= band) & ~fire & (L1 > 0) & (L2 < 0)
+    safe_L2 = jnp.where(departing, L2, -1.0)
+    tau = jnp.where(departing, L1 / (-safe_L2), jnp.inf)
+    return jnp.min(tau, initial=jnp.inf)
+
+
+def first_crossings(g_start, samples):
+    """Per guard, whether and where it first goes from > 0 to <= 0 over the samples.
+
+    `g_start` (K,) the values at the step's start; `samples` (m+1, K) at the interior points
+    and the end. Returns `(has, j)`: crossing between sample j-1 and j (sample -1 = start).
+    """
+    prev = jnp.concatenate([g_start[None], samples[:-1]], axis=0)
+    cross = (samples <= 0) & (prev > 0)
+    return jnp.any(cross, axis=0), jnp.argmax(cross, axis=0)
+
+
+def locate_root(f, a, b, tol, max_iter: int = 64):
+    """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
+
+    Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
+    falling back to bisection when a Newton step leaves the bracket; each iterate is flanked
+    by two probes at +-delta (delta = max(tol/1000, 4 ulp)) so the bracket closes as soon
+    as Newton has converged, leaving the right end within about delta of the root.
+    No gradients: the caller differentiates the event time by the implicit function theorem.
+    """
+    a, b, tol = lax.stop_gradient((a, b, tol))
+    fa, fb = f(a), f(b)
+    denom = fa - fb
+    x0 = jnp.where(denom > 0, a + (b - a) * fa / jnp.where(denom > 0, denom, 1.0), 0.5 * (a + b))
+    x0 = jnp.clip(x0, a, b)
+
+    def cond(c):
+        a, b, _, i = c
+        return (b - a > tol) & (i < max_iter)
+
+    def body(c):
+        a, b, x, i = c
+        fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
+        delta = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
+        probes = jnp.clip(jnp.stack([x - delta, x + delta]), a, b)
+        fp = jax.vmap(f)(probes)
+        pts = jnp.concatenate([x[None], probes])
+        vals = jnp.concatenate([fx[None], fp])
+        pos = (vals > 0) & jnp.isfinite(vals)
+        neg = (vals <= 0) & jnp.isfinite(vals)
+        a_new = jnp.maximum(a, jnp.max(jnp.where(pos, pts, a)))
+        b_new = jnp.minimum(b, jnp.min(jnp.where(neg, pts, b)))
+        safe_d = jnp.where(dfx != 0, dfx, 1.0)
+        xn = x - fx / safe_d
+        ok = (dfx != 0) & jnp.isfinite(xn) & (xn > a_new) & (xn < b_new)
+        # Newton that does not at least halve the bracket's distance falls back to bisection.
+        ok = ok & (b_new - a_new < 0.75 * (b - a) + tol)
+        xn = jnp.where(ok, xn, 0.5 * (a_new + b_new))
+        return a_new, b_new, xn, i + 1
+
+    a, b, _, _ = lax.while_loop(cond, body, (a, b, x0, jnp.array(0)))
+    return b

@@ -1,0 +1,394 @@
+"""The execution loop: one bounded/checkpointed while loop whose iterations are solver steps.
+
+Each iteration of one execution does, in order:
+
+1. `start_stage` (only at the start of an epoch): decide whether a guard fires at once
+   (a zero-length epoch, `_events.start_decision`); if not, choose the epoch's first step.
+2. `step_stage`: one step of the diffrax solver with diffrax's step-size controller; on an
+   accepted step, `detect` crossings on the dense interpolant, `locate` the first one,
+   `save` the requested times in the step, and `jump` (record the event and apply the reset).
+
+An epoch is therefore one diffrax integration (diffrax's own `solver.step`,
+`stepsize_controller.adapt_step_size` and dense interpolation) ended by an event. The loop is
+equinox's internal while loop, `checkpointed` for reverse mode (as diffrax's
+`RecursiveCheckpointAdjoint`), `lax` for forward mode, `bounded` for both: a bare
+`lax.while_loop` cannot be reverse-differentiated.
+
+Event times are differentiated by the implicit function theorem with the true vector field,
+dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder
+or the interpolant's derivative; the next epoch starts at that traced time, so AD through
+the loop composes flows and resets into the saltation matrix.
+"""
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jax import lax
+
+from ._events import departure_step_bound, first_crossings, locate_root, start_decision
+from ._kernels import Kernels, mask_inputs
+from ._status import Status
+
+sg = lax.stop_gradient
+
+
+class LoopState(eqx.Module):
+    """Everything one execution carries from one iteration to the next."""
+
+    t: jax.Array
+    y: jax.Array
+    mode: jax.Array
+    dt: jax.Array
+    solver_state: Any
+    controller_state: Any
+    made_jump: jax.Array
+    at_start: jax.Array
+    g_prev: jax.Array
+    num_events: jax.Array
+    zero_run: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    done: jax.Array
+    status: Status
+    event_times: jax.Array
+    transitions: jax.Array
+    states_before: jax.Array
+    states_after: jax.Array
+    epoch_modes: jax.Array
+    simultaneous: jax.Array
+    ys: jax.Array
+    saved_modes: jax.Array
+
+
+def _select(pred, a, b):
+    """Per-execution `a if pred else b` on whole pytrees (Status items included)."""
+    return jtu.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _stop(st: LoopState, pred, status: Status) -> LoopState:
+    """Mark the execution done with `status` where `pred` (and it is not done already)."""
+    pred = pred & ~st.done
+    return eqx.tree_at(
+        lambda s: (s.done, s.status),
+        st,
+        (st.done | pred, Status.where(pred, status, st.status)),
+    )
+
+
+class Loop:
+    """The loop for one system and one set of options; `run(t0, x0, mode0, args)` runs it."""
+
+    def __init__(
+        self,
+        system,
+        *,
+        t1,
+        args,
+        solver,
+        controller,
+        dt0,
+        save_ts,
+        max_epochs: int,
+        max_steps: int,
+        interior_points: int,
+        event_tol,
+        max_zero_epochs: int,
+        loop_kind: str,
+        checkpoints,
+        dtype,
+    ):
+        self.kern = Kernels(system)
+        self.system = system
+        self.t1 = t1
+        self.args = args
+        self.solver = solver
+        self.controller = controller
+        self.dt0 = dt0
+        self.save_ts = save_ts
+        self.max_epochs = max_epochs
+        self.max_steps = max_steps
+        self.interior_points = interior_points
+        self.max_zero_epochs = max_zero_epochs
+        self.loop_kind = loop_kind
+        self.checkpoints = checkpoints
+        self.dtype = dtype
+        self.eps = jnp.finfo(dtype).eps
+        self.event_tol = event_tol
+        self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
+        rtol = getattr(controller, "rtol", None)
+        atol = getattr(controller, "atol", None)
+        # Band of "zero" for guards at an epoch's start; solvers without tolerances
+        # (constant steps) get sqrt(eps), the accuracy a double-precision step can promise.
+        self.rtol = jnp.sqrt(self.eps) if rtol is None else rtol
+        self.atol = jnp.sqrt(self.eps) if atol is None else atol
+
+    # ----------------------------------------------------------------- helpers
+    def time_tol(self, t, h):
+        """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
+        return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
+
+    def error_order(self):
+        return self.solver.error_order(self.terms)
+
+    # ----------------------------------------------------------------- init
+    def init(self, t0, y0, mode0) -> LoopState:
+        n, E, K = self.kern.n, self.max_epochs, self.kern.num_transitions
+        dt = self.dtype
+        args_ext = (mode0, self.args)
+        solver_state = self.solver.init(self.terms, t0, self.t1, y0, args_ext)
+        _, controller_state = self.controller.init(
+            self.terms, t0, self.t1, y0, self.dt0, args_ext, self.solver.func, self.error_order()
+        )
+        ts = self.save_ts
+        at_t0 = ts <= t0
+        ys = jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dt)
+        saved_modes = jnp.where(at_t0, mode0, -1).astype(jnp.int32)
+        return LoopState(
+            t=t0,
+            y=y0,
+            mode=mode0,
+            dt=jnp.zeros((), dt),
+            solver_state=solver_state,
+            controller_state=controller_state,
+            made_jump=jnp.array(True),
+            at_start=jnp.array(True),
+            g_prev=jnp.zeros((K,), dt),
+            num_events=jnp.array(0, jnp.int32),
+            zero_run=jnp.array(0, jnp.int32),
+            num_steps=jnp.array(0, jnp.int32),
+            num_rejected=jnp.array(0, jnp.int32),
+            done=jnp.array(False),
+            status=Status.T1_REACHED,
+            event_times=jnp.full((E,), jnp.inf, dt),
+            transitions=jnp.full((E,), -1, jnp.int32),
+            states_before=jnp.full((E, n), jnp.inf, dt),
+            states_after=jnp.full((E, n), jnp.inf, dt),
+            epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
+            simultaneous=jnp.zeros((E,), bool),
+            ys=ys,
+            saved_modes=saved_modes,
+        )
+
+    # ----------------------------------------------------------------- jump
+    def jump(self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args) -> LoopState:
+        """Record transition k at t_ev and apply its reset (or stop: epochs, non-finite, chattering)."""
+        i = st.num_events
+        full = i >= self.max_epochs
+        y_after = self.kern.reset(k, t_ev, y_before, args)
+        finite = jnp.all(jnp.isfinite(y_after))
+        target = self.kern.targets[k]
+        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
+        recorded = eqx.tree_at(
+            lambda s: (
+                s.event_times, s.transitions, s.states_before, s.states_after,
+                s.epoch_modes, s.simultaneous, s.num_events,
+            ),
+            st,
+            (
+                st.event_times.at[i].set(t_ev, mode="drop"),
+                st.transitions.at[i].set(k, mode="drop"),
+                st.states_before.at[i].set(y_before, mode="drop"),
+                st.states_after.at[i].set(y_after, mode="drop"),
+                st.epoch_modes.at[i + 1].set(target, mode="drop"),
+                st.simultaneous.at[i].set(simultaneous, mode="drop"),
+                i + 1,
+            ),
+        )
+        jumped = eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
+            recorded,
+            (t_ev, y_after, target, jnp.array(True), jnp.array(True), zero_run),
+        )
+        jumped = _stop(jumped, zero_run > self.max_zero_epochs, Status.CHATTERING)
+        # A non-finite reset keeps the event (its after-state shows the culprit) but ends the
+        # execution at the pre-event state.
+        bad = eqx.tree_at(lambda s: (s.t, s.y), recorded, (t_ev, y_before))
+        bad = _stop(bad, jnp.array(True), Status.NONFINITE)
+        not_recorded = eqx.tree_at(lambda s: (s.t, s.y), st, (t_ev, y_before))
+        not_recorded = _stop(not_recorded, jnp.array(True), Status.MAX_EPOCHS)
+        out = _select(finite, jumped, bad)
+        return _select(full, not_recorded, out)
+
+    # ----------------------------------------------------------------- start of an epoch
+    def start_stage(self, st: LoopState) -> LoopState:
+        active = st.at_start & ~st.done
+
+        def run(st):
+            t, y, mode = sg(st.t), sg(st.y), st.mode
+            args = sg(self.args)
+            tol_t = self.time_tol(t, st.dt)
+            jets = self.kern.guard_jets(mode, t, y, args, self.rtol, self.atol, tol_t)
+            outgoing = self.kern.outgoing_mask(mode)
+            fire, g_start = start_decision(jets, outgoing, self.eps)
+            F = self.kern.flow(mode, t, y, args)
+            L0_out = jnp.where(outgoing, jets["L0"], 0.0)
+            finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(L0_out))
+            if self.kern.num_transitions:
+                k = jnp.argmax(fire).astype(jnp.int32)
+                # Inputs of a branch not taken get no gradient (NaN-safe "double where").
+                st_f, args_f = mask_inputs(active & jnp.any(fire), (st, self.args))
+                fired = self.jump(st_f, k, st_f.t, st_f.y, jnp.sum(fire) > 1, jnp.array(True), args_f)
+            else:
+                fired = st
+
+            args_ext = (mode, self.args)
+            t_init, ctrl_state = self.controller.init(
+                self.terms, t, self.t1, y, self.dt0, args_ext, self.solver.func, self.error_order()
+            )
+            dt = jnp.minimum(t_init - t, departure_step_bound(jets, outgoing, fire))
+            go = eqx.tree_at(
+                lambda s: (s.at_start, s.g_prev, s.dt, s.controller_state, s.made_jump),
+                st,
+                (jnp.array(False), g_start, sg(dt).astype(self.dtype), ctrl_state, jnp.array(True)),
+            )
+            go = _stop(go, st.t >= self.t1, Status.T1_REACHED)
+            new = _select(jnp.any(fire), fired, go)
+            new = _stop(new, ~finite, Status.NONFINITE)
+            return _select(active, new, st)
+
+        return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
+
+    # ----------------------------------------------------------------- one step
+    def step_stage(self, st: LoopState) -> LoopState:
+        active = ~st.done & ~st.at_start
+        # Executions that do not step here still compute a step (vmap); their inputs get no
+        # gradient, so a NaN in their discarded results cannot reach one (double where).
+        st_all = st
+        st, args = mask_inputs(active, (st, self.args))
+        kern, mode = self.kern, st.mode
+        args_ext = (mode, args)
+        t = st.t
+        t_next = jnp.minimum(jnp.maximum(t + st.dt, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), self.t1)
+        y1, y_err, dense_info, solver_state, _ = self.solver.step(
+            self.terms, t, t_next, st.y, args_ext, st.solver_state, st.made_jump
+        )
+        keep, nt0, nt1, made_jump, ctrl_state, _ = self.controller.adapt_step_size(
+            t, t_next, st.y, y1, args_ext, y_err, self.error_order(), st.controller_state
+        )
+        finite_y1 = jnp.all(jnp.isfinite(y1))
+        keep = keep & finite_y1
+        # A non-finite step gives the controller a NaN error and a NaN next step; shrink the
+        # step instead, so the run closes in on where the flow stops being finite.
+        dt_new = sg(jnp.where(finite_y1, nt1 - nt0, 0.25 * (t_next - t))).astype(self.dtype)
+        ctrl_state = _select(finite_y1, ctrl_state, st.controller_state)
+
+        # detect: guards on the interpolant at interior points and at the end of the step.
+        interp = self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+        interp_sg = self.solver.interpolation_cls(t0=sg(t), t1=sg(t_next), **sg(dense_info))
+        args_sg = sg(args)
+        m = self.interior_points
+        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
+        s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
+        ys_s = jnp.concatenate([jax.vmap(interp_sg.evaluate)(s[:-1]), sg(y1)[None]])
+        G = jax.vmap(lambda si, yi: kern.guards(mode, si, yi, args_sg))(s, ys_s)
+        finite_G = jnp.all(jnp.isfinite(G))
+        has, j = first_crossings(st.g_prev, G)
+        has = has & keep & finite_G & active
+        any_event = jnp.any(has)
+        h = sg(t_next - t)
+        tol = self.time_tol(sg(t_next), h)
+
+        # locate: only when some execution in the batch has an event in this step.
+        def locate(_):
+            s_ext = jnp.concatenate([sg(t)[None], s])
+            a = jnp.where(has, s_ext[j], s[j])
+            b = s[j]
+
+            def root(k, a_k, b_k):
+                g_k = lambda x: kern.guards(mode, x, interp_sg.evaluate(x), args_sg)[k]  # noqa: E731
+                return locate_root(g_k, a_k, b_k, tol)
+
+            tk = jax.vmap(root)(jnp.arange(kern.num_transitions), a, b)
+            tk = jnp.where(has, tk, jnp.inf)
+            t_min = jnp.min(tk)
+            cand = has & (tk <= t_min + tol)
+            k = jnp.argmax(cand).astype(jnp.int32)
+            return jnp.where(jnp.any(has), tk[k], sg(t_next)), k, jnp.sum(cand) > 1
+
+        def no_event(_):
+            return sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
+
+        if kern.num_transitions:
+            t_star, k, simultaneous = lax.cond(eqxi.unvmap_any(any_event), locate, no_event, None)
+        else:
+            t_star, k, simultaneous = no_event(None)
+        ev_active = active & any_event
+        if kern.num_transitions:
+            dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
+            interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
+            t_ev, y_before = self.event_point(mode, k, t_star, interp_e, args_e)
+
+        # save: requested times inside (t, t_end], t_end the event time or the step's end.
+        ys, saved_modes = st.ys, st.saved_modes
+        if self.save_ts.shape[0]:
+            t_end = jnp.where(any_event, t_star, sg(t_next))
+            mask = keep & active & (self.save_ts > sg(t)) & (self.save_ts <= t_end)
+            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
+            ys = jnp.where(mask[:, None], vals, ys)
+            saved_modes = jnp.where(mask, mode, saved_modes)
+
+        counted = eqx.tree_at(
+            lambda s: (s.dt, s.controller_state, s.num_steps, s.num_rejected, s.ys, s.saved_modes),
+            st,
+            (dt_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32),
+             ys, saved_modes),
+        )
+        accepted = eqx.tree_at(
+            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
+            counted,
+            (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
+        )
+        accepted = _stop(accepted, t_next >= self.t1, Status.T1_REACHED)
+        if kern.num_transitions:
+            counted_e = mask_inputs(ev_active, counted)
+            evented = self.jump(counted_e, k, t_ev, y_before, simultaneous, jnp.array(False), args_e)
+        else:
+            evented = accepted
+        progressed = _select(keep, _select(any_event, evented, accepted), counted)
+        # A non-finite step that cannot be shrunk any further, or non-finite guards on an
+        # accepted step, stop the run at the step's start, where everything was finite.
+        stuck = ~finite_y1 & (h <= 64 * self.eps * jnp.maximum(jnp.abs(sg(t)), h))
+        halted = _stop(counted, jnp.array(True), Status.NONFINITE)
+        new = _select(stuck | (keep & ~finite_G), halted, progressed)
+        new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
+        return _select(active, new, st_all)
+
+    def event_point(self, mode, k, t_star, interp, args):
+        """The event time and pre-event state, differentiable by the implicit function theorem.
+
+        With t* found without gradients and x*(theta) = interpolant(t*), the returned time is
+        t* - (g(t*, x*) - [g]) / [D_t g + D_x g F] and the state x* + F (t - t*), [.] meaning
+        stop_gradient: equal in value to (t*, x*), with dt = -dg / gdot and dx = dx* + F dt.
+        """
+        kern = self.kern
+        x_star = interp.evaluate(t_star)
+        F = kern.flow(mode, t_star, x_star, args)
+        g = lambda tt, xx: kern.guards(mode, tt, xx, args)[k]  # noqa: E731
+        g_val, gdot = jax.jvp(g, (t_star, x_star), (jnp.ones_like(t_star), F))
+        gdot = sg(gdot)
+        safe = jnp.where(gdot != 0, gdot, 1.0)
+        t_ev = t_star - (g_val - sg(g_val)) / safe
+        return t_ev, x_star + F * (t_ev - t_star)
+
+    # ----------------------------------------------------------------- the loop
+    def body(self, st: LoopState) -> LoopState:
+        new = self.step_stage(self.start_stage(st))
+        return _select(st.done, st, new)
+
+    def run(self, t0, y0, mode0) -> LoopState:
+        st = self.init(t0, y0, mode0)
+        st = eqxi.while_loop(
+            lambda s: ~s.done,
+            self.body,
+            st,
+            max_steps=self.max_steps + self.max_epochs + 2,
+            kind=self.loop_kind,
+            checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
+        )
+        # The loop's own bound can only be met by executions that are still running.
+        return _stop(st, jnp.array(True), Status.MAX_STEPS)

@@ -1,0 +1,257 @@
+"""`simulate`: run one execution of a hybrid system (vmap it for many)."""
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fill implicit tols
+from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
+from jaxtyping import ArrayLike, Float, Int
+
+from ._loop import Loop
+from ._solution import Solution
+from ._status import Status
+from ._system import HybridSystem, as_mode_index
+
+
+def _loop_kind(adjoint) -> tuple[str, int | None]:
+    if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+        return "checkpointed", adjoint.checkpoints
+    if isinstance(adjoint, diffrax.ForwardMode):
+        return "lax", None
+    if isinstance(adjoint, diffrax.DirectAdjoint):
+        return "bounded", None
+    raise TypeError(
+        f"adjoint={adjoint!r} is not supported: use diffrax.RecursiveCheckpointAdjoint() "
+        "(reverse mode, the default), diffrax.ForwardMode() (forward mode: jax.jvp, "
+        "jax.jacfwd) or diffrax.DirectAdjoint() (both, at a higher cost)."
+    )
+
+
+def _save_times(saveat, t0, t1, dtype) -> jax.Array:
+    if saveat is None:
+        return jnp.zeros((0,), dtype)
+    if isinstance(saveat, diffrax.SaveAt):
+        sub = saveat.subs
+        if not isinstance(sub, diffrax.SubSaveAt) or sub.steps or sub.fn is not _save_y:
+            raise ValueError("saveat: only diffrax.SaveAt(t0=..., t1=..., ts=...) is supported.")
+        parts = []
+        if sub.t0:
+            parts.append(jnp.reshape(t0, (1,)))
+        if sub.ts is not None:
+            parts.append(jnp.asarray(sub.ts, dtype).reshape(-1))
+        if sub.t1:
+            parts.append(jnp.reshape(t1, (1,)))
+        return jnp.concatenate(parts).astype(dtype) if parts else jnp.zeros((0,), dtype)
+    ts = jnp.asarray(saveat, dtype)
+    if ts.ndim != 1:
+        raise ValueError(f"saveat: expected a 1-D array of times, got shape {ts.shape}.")
+    return ts
+
+
+def _prepare_solver(solver, controller, kind: str):
+    """What `diffrax.diffeqsolve` does to a solver before stepping it, done here as well.
+
+    - the RK stage loop must not be a custom_vjp under forward mode (as diffrax's
+      `ForwardMode`/`DirectAdjoint` do);
+    - an implicit solver's root finder takes the controller's rtol/atol/norm where it was
+      left at diffrax's `use_stepsize_tol`.
+    """
+    if (
+        kind != "checkpointed"
+        and isinstance(solver, diffrax.AbstractRungeKutta)
+        and solver.scan_kind is None
+    ):
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
+    if isinstance(solver, diffrax.AbstractImplicitSolver):
+        attrs = [a for a in ("rtol", "atol", "norm")
+                 if getattr(solver.root_finder, a) is use_stepsize_tol]
+        if attrs:
+            if not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+                raise ValueError(
+                    f"{type(solver).__name__} with a fixed step size needs explicit root-finder "
+                    "tolerances, e.g. root_finder=diffrax.VeryChord(rtol=..., atol=..., "
+                    "norm=optimistix.max_norm); or use an adaptive controller."
+                )
+            solver = eqx.tree_at(
+                lambda s: tuple(getattr(s.root_finder, a) for a in attrs),
+                solver,
+                tuple(getattr(controller, a) for a in attrs),
+            )
+    return solver
+
+
+def _default_controller(dtype) -> diffrax.PIDController:
+    tol = 1e-8 if dtype == jnp.float64 else 1e-5
+    return diffrax.PIDController(rtol=tol, atol=tol)
+
+
+def _initial_state(system: HybridSystem, x0, mode0, dtype) -> jax.Array:
+    x0 = jnp.asarray(x0, dtype)
+    n = system.max_dim
+    if x0.ndim != 1:
+        raise ValueError(f"x0 must be a 1-D state vector, got shape {x0.shape}.")
+    m = x0.shape[0]
+    if isinstance(mode0, (str, int, np.integer)):
+        mode = system.modes[system.mode_index(mode0)]
+        if m not in (mode.dim, n):
+            raise ValueError(
+                f"x0 has {m} components but mode '{mode.name}' has dim {mode.dim}"
+                + (f" (padded state: {n})." if n != mode.dim else ".")
+            )
+    elif m != n:
+        raise ValueError(
+            f"x0 has {m} components; with a traced mode0 pass the padded state of "
+            f"length {n} (the largest mode dimension)."
+        )
+    return x0 if m == n else jnp.concatenate([x0, jnp.zeros((n - m,), dtype)])
+
+
+def simulate(
+    system: HybridSystem,
+    x0: Float[ArrayLike, " dim"],
+    mode0: str | int | Int[ArrayLike, ""],
+    t0: Float[ArrayLike, ""],
+    t1: Float[ArrayLike, ""],
+    args: Any = None,
+    *,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    saveat: diffrax.SaveAt | Float[ArrayLike, " saves"] | None = None,
+    dt0: float | None = None,
+    max_epochs: int = 64,
+    max_steps: int = 4096,
+    event_tol: float | None = None,
+    interior_points: int = 4,
+    max_zero_epochs: int = 16,
+    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    throw: bool = False,
+) -> Solution:
+    r"""Simulate one execution of `system` from `(x0, mode0)` at `t0` until `t1` or a stop.
+
+    Within an epoch in mode I the state follows dx/dt = F_I(t, x) (one diffrax integration);
+    transition (I, J) fires when g_IJ crosses from > 0 to <= 0, at the time t* found on the
+    solver's dense output, and the state jumps to x(t*^+) = R_IJ(t*, x(t*^-)). At the start
+    of an epoch a transition fires at once (a zero-length epoch) if the state is already in
+    its guard: g < -band, or |g| <= band and g trending negative (first non-zero Lie
+    derivative along F_I negative). Guards reached at the same instant fire in listing
+    order. See `Solution` for what comes back.
+
+    Pure in its array arguments: `jax.jit`, `jax.vmap` over `x0`, `mode0`, `args`, `t0`,
+    `t1`; `jax.grad`/`jax.jacrev` (default `adjoint`) and `jax.jacfwd`
+    (`adjoint=diffrax.ForwardMode()`) with respect to `x0`, `args`, `t0`, `t1`.
+
+    **Arguments:**
+
+    - `system`: the `HybridSystem`.
+    - `x0`: the initial state, of `mode0`'s dimension (or padded to the largest dimension,
+      which is required when `mode0` is traced, e.g. under `vmap`).
+    - `mode0`: initial mode, by name or index.
+    - `t0`, `t1`: the time interval.
+    - `args`: any pytree passed to every flow, guard, reset and domain.
+    - `solver`: a diffrax solver (default `Tsit5()`); implicit ones (`Kvaerno5()`) work.
+    - `stepsize_controller`: a diffrax controller; default `PIDController(rtol=1e-8,
+      atol=1e-8)` in float64, `1e-5` in float32.
+    - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
+      t1=...)`.
+    - `dt0`: first step size; default chosen per epoch from the tolerances (Hairer's rule),
+      capped so that a departing guard is seen positive before it can return.
+    - `max_epochs`: the most transitions recorded; one more ends with `MAX_EPOCHS`.
+    - `max_steps`: the most solver steps (accepted and rejected, all epochs together);
+      more ends with `MAX_STEPS`.
+    - `event_tol`: event-time tolerance relative to the step in which the event lies
+      (floored at 8 ulp of t): the root bracket is narrowed below `event_tol * h`.
+      Default 1e-12 (float64), 1e-6 (float32).
+    - `interior_points`: guards are also checked at this many interior points of each step's
+      dense output, to catch a guard entered and left within one step.
+    - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
+    - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode), `ForwardMode()`
+      (forward mode) or `DirectAdjoint()` (both): selects the kind of while loop.
+    - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
+
+    !!! Example
+
+        ```python
+        import hybridjax as hj, jax.numpy as jnp
+        ball = hj.examples.bouncing_ball()
+        sol = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0,
+                          args={"g": 9.8, "e": 0.8})
+        sol.event_times[:3]   # impacts at sqrt(2 h0 / g) (1 + 2 e + 2 e^2 + ...)
+        ```
+    """
+    if not isinstance(system, HybridSystem):
+        raise TypeError(f"system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
+    for name, value, low in (
+        ("max_epochs", max_epochs, 1),
+        ("max_steps", max_steps, 1),
+        ("interior_points", interior_points, 0),
+        ("max_zero_epochs", max_zero_epochs, 0),
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
+    x0_arr = jnp.asarray(x0)
+    dtype = jnp.result_type(x0_arr.dtype, jnp.float32)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
+    system.check(args, dtype)
+    kind, checkpoints = _loop_kind(adjoint)
+    controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
+    solver = _prepare_solver(solver, controller, kind)
+    if dt0 is None and not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+        raise ValueError(f"{type(controller).__name__} needs dt0 (no error estimate to pick one).")
+    if event_tol is None:
+        event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
+
+    y0 = _initial_state(system, x0_arr, mode0, dtype)
+    m0 = as_mode_index(system, mode0)
+    t0 = jnp.asarray(t0, dtype)
+    t1 = jnp.asarray(t1, dtype)
+    t1 = eqx.error_if(t1, t1 < t0, "simulate: t1 must be >= t0.")
+    loop = Loop(
+        system,
+        t1=t1,
+        args=args,
+        solver=solver,
+        controller=controller,
+        dt0=dt0,
+        save_ts=_save_times(saveat, t0, t1, dtype),
+        max_epochs=int(max_epochs),
+        max_steps=int(max_steps),
+        interior_points=int(interior_points),
+        event_tol=event_tol,
+        max_zero_epochs=int(max_zero_epochs),
+        loop_kind=kind,
+        checkpoints=checkpoints,
+        dtype=dtype,
+    )
+    st = loop.run(t0, y0, m0)
+    final_time = st.t
+    if throw:
+        final_time = st.status.error_if(final_time, st.status != Status.T1_REACHED)
+    return Solution(
+        event_times=st.event_times,
+        num_events=st.num_events,
+        epoch_modes=st.epoch_modes,
+        transitions=st.transitions,
+        states_before=st.states_before,
+        states_after=st.states_after,
+        simultaneous=st.simultaneous,
+        final_time=final_time,
+        final_mode=st.mode,
+        final_state=st.y,
+        status=st.status,
+        ts=loop.save_ts,
+        ys=st.ys,
+        saved_modes=st.saved_modes,
+        num_steps=st.num_steps,
+        num_rejected=st.num_rejected,
+        t0=t0,
+        x0=y0,
+        mode0=m0,
+        args=args,
+        system=system,
+    )
+

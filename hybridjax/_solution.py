@@ -1,0 +1,170 @@
+"""The result of `simulate`: the hybrid time domain of an execution and the states on it."""
+
+from typing import Any, NamedTuple
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ._kernels import Kernels
+from ._status import STATUS_NAMES, Status
+from ._system import HybridSystem
+
+
+class Epoch(NamedTuple):
+    """One epoch T_i = [start, end] of a hybrid time domain, spent in one mode."""
+
+    index: int
+    mode: int
+    mode_name: str
+    start: float
+    end: float
+
+    @property
+    def length(self) -> float:
+        return self.end - self.start
+
+
+class Solution(eqx.Module):
+    """One execution (or, under `jax.vmap`, a batch of them) of a hybrid system.
+
+    The hybrid time domain is T = [t_1, t_2] u [t_2, t_3] u ... with t_1 = `t0` and
+    t_{i+1} = `event_times[i-1]`; epoch i is spent in mode `epoch_modes[i]`.
+
+    **Padding.** Event arrays have length `max_epochs` (the most transitions recorded);
+    entries past `num_events` hold `inf` (times and states) or `-1` (indices). Padding is
+    constant, so it never carries a gradient. States are padded to the system's largest
+    dimension; mode I's state is the first n_I components.
+
+    **Fields:**
+
+    - `event_times` (E,): t_2, t_3, ... the times at which transitions fired.
+    - `num_events`: the number of transitions taken.
+    - `epoch_modes` (E+1,): the mode index of each epoch (`-1` past the last).
+    - `transitions` (E,): the index (in `system.transitions`) of each transition taken.
+    - `states_before`, `states_after` (E, n): x(t_i^-) and x(t_i^+) at each event.
+    - `simultaneous` (E,): True where another guard was reached at the same instant (within
+      the event tolerance) and lost on priority.
+    - `final_time`, `final_mode`, `final_state`: where the execution stopped.
+    - `status`: an `hj.Status`; everything before the stop is kept.
+    - `ts`, `ys`, `saved_modes`: the requested save times, the state there and its mode
+      (`inf` / `-1` for times the execution did not reach). At an event time the saved
+      state is the pre-event one.
+    - `num_steps`, `num_rejected`: solver steps attempted and rejected.
+    - `t0`, `x0`, `mode0`, `args`, `system`: the problem, kept for `evaluate`.
+    """
+
+    event_times: Float[Array, "*batch epochs"]
+    num_events: Int[Array, "*batch"]
+    epoch_modes: Int[Array, "*batch epochs_plus_one"]
+    transitions: Int[Array, "*batch epochs"]
+    states_before: Float[Array, "*batch epochs dim"]
+    states_after: Float[Array, "*batch epochs dim"]
+    simultaneous: Bool[Array, "*batch epochs"]
+    final_time: Float[Array, "*batch"]
+    final_mode: Int[Array, "*batch"]
+    final_state: Float[Array, "*batch dim"]
+    status: Status
+    ts: Float[Array, "*batch saves"]
+    ys: Float[Array, "*batch saves dim"]
+    saved_modes: Int[Array, "*batch saves"]
+    num_steps: Int[Array, "*batch"]
+    num_rejected: Int[Array, "*batch"]
+    t0: Float[Array, "*batch"]
+    x0: Float[Array, "*batch dim"]
+    mode0: Int[Array, "*batch"]
+    args: Any
+    system: HybridSystem = eqx.field(static=True)
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def status_code(self) -> Int[Array, "*batch"]:
+        """The status as an integer array (index into `hj.STATUS_NAMES`)."""
+        return self.status._value
+
+    @property
+    def status_name(self):
+        """The status name (a str, or a numpy array of str for a batch)."""
+        names = np.asarray(STATUS_NAMES)[np.asarray(self.status._value)]
+        return str(names) if names.ndim == 0 else names
+
+    def _check_single(self, what: str) -> None:
+        if np.ndim(self.num_events) != 0:
+            raise ValueError(
+                f"`{what}` works on one execution; index the batch first, e.g. "
+                "`jax.tree_util.tree_map(lambda a: a[i], sol)` or `sol[i]`."
+            )
+
+    def __getitem__(self, i) -> "Solution":
+        """Execution i of a batched solution (numpy-style index into the batch axes)."""
+        return jax.tree_util.tree_map(lambda a: a[i], self)
+
+    def hybrid_time_domain(self) -> list[Epoch]:
+        """The epochs [t_i, t_{i+1}] with their modes, as a list (one execution only).
+
+        Zero-length epochs (a reset into another guard) appear with start == end.
+        """
+        self._check_single("hybrid_time_domain")
+        n = int(self.num_events)
+        starts = [float(self.t0)] + [float(x) for x in np.asarray(self.event_times)[:n]]
+        ends = starts[1:] + [float(self.final_time)]
+        modes = np.asarray(self.epoch_modes)[: n + 1]
+        names = self.system.mode_names
+        return [
+            Epoch(i, int(m), names[int(m)], s, e)
+            for i, (m, s, e) in enumerate(zip(modes, starts, ends, strict=True))
+        ]
+
+    def evaluate(
+        self,
+        t,
+        *,
+        solver: diffrax.AbstractSolver | None = None,
+        stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    ) -> tuple[Float[Array, " dim"], Int[Array, ""]]:
+        """The state x(t) and mode at time t of one execution (dense output).
+
+        Finds the epoch containing t (right-continuous: at an event time the post-event
+        state of the last transition at that instant), and integrates that epoch's flow from
+        its initial state x(t_i^+) to t with diffrax (default Tsit5, rtol = atol = 1e-10).
+        Differentiable; `jax.vmap` over `t` for many times. Times outside
+        [t0, final_time] return `inf`.
+        """
+        self._check_single("evaluate")
+        t = jnp.asarray(t, self.final_time.dtype)
+        i = jnp.sum(self.event_times <= t).astype(jnp.int32)
+        i = jnp.minimum(i, self.num_events)
+        start_t = jnp.where(i == 0, self.t0, self.event_times[jnp.maximum(i - 1, 0)])
+        start_x = jnp.where(i == 0, self.x0, self.states_after[jnp.maximum(i - 1, 0)])
+        mode = self.epoch_modes[i]
+        kern = Kernels(self.system)
+        term = diffrax.ODETerm(lambda tt, y, a: kern.flow(mode, tt, y, a))
+        solver = diffrax.Tsit5() if solver is None else solver
+        if stepsize_controller is None:
+            tol = 1e-10 if start_x.dtype == jnp.float64 else 1e-6
+            stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+        inside = (t >= self.t0) & (t <= self.final_time)
+        t_end = jnp.where(inside, jnp.maximum(t, start_t), start_t)
+        same = t_end == start_t
+        sol = diffrax.diffeqsolve(
+            term, solver, start_t, jnp.where(same, start_t + 1, t_end), None, start_x,
+            args=self.args, saveat=diffrax.SaveAt(t1=True),
+            stepsize_controller=stepsize_controller, max_steps=16384, throw=False,
+        )
+        x = jnp.where(same, start_x, sol.ys[-1])
+        return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
+
+    def __repr__(self) -> str:
+        if np.ndim(self.num_events) != 0:
+            shape = np.shape(self.num_events)
+            codes, counts = np.unique(np.asarray(self.status._value), return_counts=True)
+            tally = ", ".join(f"{STATUS_NAMES[c]}: {k}" for c, k in zip(codes, counts, strict=True))
+            return f"Solution(batch {shape}; {tally})"
+        return (
+            f"Solution(status={self.status_name}, num_events={int(self.num_events)}, "
+            f"final_time={float(self.final_time):.6g}, final_mode="
+            f"'{self.system.mode_names[int(self.final_mode)]}')"
+        )

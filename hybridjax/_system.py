@@ -1,0 +1,274 @@
+"""Definition of a hybrid dynamical system H = (J, Gamma, D, F, G, R).
+
+Notation follows A. M. Johnson, S. E. Burden, D. E. Koditschek, "A hybrid systems model for
+simple manipulation and self-manipulation systems", IJRR 35(11), 2016: modes J, transitions
+Gamma (directed edges), domains D_I = {a_I >= 0}, flows F_I, guards G_IJ = {g_IJ <= 0} and
+resets R_IJ : G_IJ -> D_J.
+"""
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._validation import check_function_shapes
+
+
+def _identity_reset(t, x, args):
+    del t, args
+    return x
+
+
+class Mode(eqx.Module):
+    """A discrete mode I: its flow F_I, its state dimension n_I and optionally its domain.
+
+    Within mode I the continuous state obeys dx/dt = F_I(t, x, args), x in R^{n_I}.
+
+    **Arguments:**
+
+    - `name`: a unique name; transitions and `simulate(mode0=...)` may use it.
+    - `flow`: `flow(t, x, args) -> dx/dt`, diffrax's `(t, y, args)` convention, returning an
+      array of shape `(dim,)`.
+    - `dim`: the state dimension n_I of this mode. Modes may differ in dimension (the domains
+      form a disjoint union); the solver carries a zero-padded state and every user function
+      sees exactly its own mode's `dim` components.
+    - `domain`: optional `domain(t, x, args) -> a` (a scalar or 1-D array), D_I = {a >= 0}.
+
+    !!! Example
+
+        ```python
+        flight = hj.Mode("flight", lambda t, x, args: jnp.array([x[1], -args["g"]]), dim=2)
+        ```
+    """
+
+    name: str = eqx.field(static=True)
+    flow: Callable
+    dim: int = eqx.field(static=True)
+    domain: Callable | None = None
+
+    def __check_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"Mode name must be a non-empty string, got {self.name!r}.")
+        if not callable(self.flow):
+            raise TypeError(f"Mode '{self.name}': `flow` must be callable, got {self.flow!r}.")
+        if self.domain is not None and not callable(self.domain):
+            raise TypeError(f"Mode '{self.name}': `domain` must be callable or None.")
+        if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim < 1:
+            raise ValueError(f"Mode '{self.name}': `dim` must be a positive int, got {self.dim!r}.")
+
+
+class Transition(eqx.Module):
+    """A discrete transition (I, J) in Gamma, with its guard g_IJ and reset R_IJ.
+
+    The transition fires when the flow of mode I enters the guard set
+    G_IJ = {x : g_IJ(t, x, args) <= 0}; the state then jumps to x+ = R_IJ(t, x-, args) in
+    mode J.
+
+    **Arguments:**
+
+    - `source`, `target`: mode names (or indices into `HybridSystem.modes`).
+    - `guard`: `guard(t, x, args) -> scalar`, evaluated on a state of `source` (shape
+      `(n_I,)`).
+    - `reset`: `reset(t, x, args) -> x+` mapping a state of `source` (`(n_I,)`) to one of
+      `target` (`(n_J,)`). Defaults to the identity (which requires n_I == n_J).
+    - `name`: optional label used in messages and plots; defaults to `"source->target"`.
+
+    Several transitions may leave one mode; their order in `HybridSystem.transitions` is
+    their priority when guards are reached at the same instant.
+
+    !!! Example
+
+        ```python
+        bounce = hj.Transition(
+            "flight", "flight",
+            guard=lambda t, x, args: x[0],
+            reset=lambda t, x, args: jnp.array([x[0], -args["e"] * x[1]]),
+        )
+        ```
+    """
+
+    source: str | int = eqx.field(static=True)
+    target: str | int = eqx.field(static=True)
+    guard: Callable
+    reset: Callable = _identity_reset
+    name: str | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        for role in ("source", "target"):
+            ref = getattr(self, role)
+            if isinstance(ref, bool) or not isinstance(ref, (str, int, np.integer)):
+                raise TypeError(
+                    f"Transition {self.label}: `{role}` must be a mode name or index, got {ref!r}."
+                )
+        if not callable(self.guard):
+            raise TypeError(f"Transition {self.label}: `guard` must be callable.")
+        if not callable(self.reset):
+            raise TypeError(f"Transition {self.label}: `reset` must be callable.")
+
+    @property
+    def label(self) -> str:
+        return self.name if self.name is not None else f"{self.source}->{self.target}"
+
+
+class HybridSystem(eqx.Module):
+    """A hybrid dynamical system H = (J, Gamma, D, F, G, R): modes and the transitions between them.
+
+    Validation happens here, at construction: unknown or duplicate mode names, and, by
+    abstract evaluation (`jax.eval_shape`, no real call), the flow output shape, scalar
+    guards, scalar-or-vector domains and reset output dimensions. Errors name the mode or
+    transition at fault. Shape checks that need `args` (a flow reading `args["g"]`, say) are
+    repeated by `simulate` with the real `args`; pass `example_args` to run them here.
+
+    **Arguments:**
+
+    - `modes`: a sequence of `Mode`, names unique.
+    - `transitions`: a sequence of `Transition`; a transition's index is its position here,
+      which is also its priority among transitions leaving the same mode.
+    - `example_args`: optional `args` pytree used only for the shape checks.
+
+    `system.modes` and `system.transitions` are the tuples given, in order.
+    """
+
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    sources: tuple[int, ...] = eqx.field(static=True)
+    targets: tuple[int, ...] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        modes: Sequence[Mode],
+        transitions: Sequence[Transition] = (),
+        *,
+        example_args: Any = None,
+    ):
+        modes = tuple(modes)
+        transitions = tuple(transitions)
+        if len(modes) == 0:
+            raise ValueError("A HybridSystem needs at least one Mode.")
+        for i, m in enumerate(modes):
+            if not isinstance(m, Mode):
+                raise TypeError(f"modes[{i}] is {type(m).__name__}, expected hybridjax.Mode.")
+        for k, tr in enumerate(transitions):
+            if not isinstance(tr, Transition):
+                raise TypeError(
+                    f"transitions[{k}] is {type(tr).__name__}, expected hybridjax.Transition."
+                )
+        index: dict[str, int] = {}
+        for i, m in enumerate(modes):
+            if m.name in index:
+                raise ValueError(
+                    f"Duplicate mode name '{m.name}' (modes[{index[m.name]}] and modes[{i}])."
+                )
+            index[m.name] = i
+
+        def resolve(k: int, tr: Transition, role: str) -> int:
+            ref = getattr(tr, role)
+            if isinstance(ref, str):
+                if ref not in index:
+                    raise ValueError(
+                        f"Transition {k} ({tr.label}): unknown {role} mode '{ref}'; "
+                        f"known modes: {sorted(index)}."
+                    )
+                return index[ref]
+            if not 0 <= int(ref) < len(modes):
+                raise ValueError(
+                    f"Transition {k} ({tr.label}): {role} index {ref} out of range "
+                    f"for {len(modes)} modes."
+                )
+            return int(ref)
+
+        self.modes = modes
+        self.transitions = transitions
+        self.sources = tuple(resolve(k, tr, "source") for k, tr in enumerate(transitions))
+        self.targets = tuple(resolve(k, tr, "target") for k, tr in enumerate(transitions))
+        for k, tr in enumerate(transitions):
+            if tr.reset is _identity_reset:
+                n_i, n_j = modes[self.sources[k]].dim, modes[self.targets[k]].dim
+                if n_i != n_j:
+                    raise ValueError(
+                        f"Transition {k} ({tr.label}): the default identity reset needs equal "
+                        f"dimensions, but source has dim {n_i} and target dim {n_j}; "
+                        "give a `reset`."
+                    )
+        check_function_shapes(self, example_args, dtype=jnp.result_type(float), strict=False)
+
+    # ------------------------------------------------------------------ lookups
+    @property
+    def num_modes(self) -> int:
+        return len(self.modes)
+
+    @property
+    def num_transitions(self) -> int:
+        return len(self.transitions)
+
+    @property
+    def max_dim(self) -> int:
+        """The padded state dimension max_I n_I that the solver carries."""
+        return max(m.dim for m in self.modes)
+
+    @property
+    def mode_names(self) -> tuple[str, ...]:
+        return tuple(m.name for m in self.modes)
+
+    def mode_index(self, mode: str | int) -> int:
+        """The index of a mode given by name or index (a Python value, not a tracer)."""
+        if isinstance(mode, str):
+            try:
+                return self.mode_names.index(mode)
+            except ValueError:
+                raise ValueError(
+                    f"Unknown mode '{mode}'; known modes: {list(self.mode_names)}."
+                ) from None
+        i = int(mode)
+        if not 0 <= i < self.num_modes:
+            raise ValueError(f"Mode index {i} out of range for {self.num_modes} modes.")
+        return i
+
+    def transition_index(self, transition: "Transition | int") -> int:
+        """The index of a transition given as the object or its index."""
+        if isinstance(transition, Transition):
+            for k, tr in enumerate(self.transitions):
+                if tr is transition:
+                    return k
+            for k, tr in enumerate(self.transitions):
+                if tr == transition:
+                    return k
+            raise ValueError(f"Transition {transition.label} is not part of this system.")
+        k = int(transition)
+        if not 0 <= k < self.num_transitions:
+            raise ValueError(
+                f"Transition index {k} out of range for {self.num_transitions} transitions."
+            )
+        return k
+
+    def outgoing(self, mode: int) -> tuple[int, ...]:
+        """Indices of the transitions leaving `mode`, in priority order."""
+        return tuple(k for k, s in enumerate(self.sources) if s == mode)
+
+    def check(self, args: Any = None, dtype: Any = None) -> None:
+        """Run the shape checks with these `args` (raises ValueError naming the culprit)."""
+        check_function_shapes(
+            self, args, dtype=jnp.result_type(float) if dtype is None else dtype, strict=True
+        )
+
+    def __repr__(self) -> str:
+        lines = [f"HybridSystem({self.num_modes} modes, {self.num_transitions} transitions)"]
+        for i, m in enumerate(self.modes):
+            dom = ", domain" if m.domain is not None else ""
+            lines.append(f"  mode {i} '{m.name}': dim {m.dim}{dom}")
+        for k, tr in enumerate(self.transitions):
+            src, tgt = self.modes[self.sources[k]].name, self.modes[self.targets[k]].name
+            lines.append(f"  transition {k} '{tr.label}': {src} -> {tgt}")
+        return "\n".join(lines)
+
+
+def as_mode_index(system: HybridSystem, mode0) -> jax.Array:
+    """`mode0` as an int32 array: a name is resolved now, an integer (array) is kept."""
+    if isinstance(mode0, str):
+        return jnp.asarray(system.mode_index(mode0), dtype=jnp.int32)
+    if isinstance(mode0, (int, np.integer)):
+        return jnp.asarray(system.mode_index(mode0), dtype=jnp.int32)
+    return jnp.asarray(mode0, dtype=jnp.int32)

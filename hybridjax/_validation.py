@@ -1,0 +1,82 @@
+"""Shape checks of a system's user functions by abstract evaluation (`jax.eval_shape`).
+
+Nothing here calls a user function on real data: `jax.eval_shape` traces it with abstract
+arrays, so the checks are cheap and have no side effects.
+"""
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+
+class DefinitionError(ValueError):
+    """A mode or transition of a `HybridSystem` is ill-defined (message names the culprit)."""
+
+
+def _abstract_shape(fn, dim: int, args: Any, dtype) -> jax.ShapeDtypeStruct:
+    t = jax.ShapeDtypeStruct((), dtype)
+    x = jax.ShapeDtypeStruct((dim,), dtype)
+    out = jax.eval_shape(fn, t, x, args)
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        leaves = jax.tree_util.tree_leaves(out)
+        if len(leaves) != 1:
+            raise DefinitionError(f"returned a pytree {jax.tree_util.tree_structure(out)}, "
+                                  "expected a single array")
+        out = leaves[0]
+    return out
+
+
+def _check_one(what: str, fn, dim: int, args, dtype, strict: bool, want) -> None:
+    try:
+        out = _abstract_shape(fn, dim, args, dtype)
+    except DefinitionError as err:
+        raise DefinitionError(f"{what} {err}.") from None
+    except Exception as err:  # noqa: BLE001 - any user error is re-raised with the culprit named
+        if not strict:
+            return  # most likely needs the real `args`; `simulate` repeats the check with them
+        raise DefinitionError(
+            f"{what} failed on a state of shape ({dim},): {type(err).__name__}: {err}"
+        ) from err
+    problem = want(out.shape)
+    if problem is not None:
+        raise DefinitionError(f"{what} {problem}")
+    if not jnp.issubdtype(out.dtype, jnp.inexact):
+        raise DefinitionError(f"{what} returned dtype {out.dtype}; expected a floating dtype.")
+
+
+def check_function_shapes(system, args: Any, dtype, strict: bool) -> None:
+    """Check flow, domain, guard and reset output shapes of every mode and transition.
+
+    - flow of mode I: shape (n_I,)
+    - domain of mode I: shape () or (m,)
+    - guard of transition (I, J): shape () (a scalar guard function)
+    - reset of transition (I, J): shape (n_J,)
+
+    With `strict=False` a function that raises (typically because `args` is not known yet)
+    is skipped; a function that evaluates with a wrong shape always raises.
+    """
+    for i, mode in enumerate(system.modes):
+        n = mode.dim
+        _check_one(
+            f"Mode {i} '{mode.name}': flow", mode.flow, n, args, dtype, strict,
+            lambda s, n=n: None if s == (n,) else f"returned shape {s}; expected ({n},) = (dim,).",
+        )
+        if mode.domain is not None:
+            _check_one(
+                f"Mode {i} '{mode.name}': domain", mode.domain, n, args, dtype, strict,
+                lambda s: None if len(s) <= 1 else f"returned shape {s}; expected () or (m,).",
+            )
+    for k, tr in enumerate(system.transitions):
+        src, tgt = system.modes[system.sources[k]], system.modes[system.targets[k]]
+        name = f"Transition {k} ({tr.label}, '{src.name}' -> '{tgt.name}')"
+        _check_one(
+            f"{name}: guard", tr.guard, src.dim, args, dtype, strict,
+            lambda s: None if s == () else f"returned shape {s}; a guard must return a scalar.",
+        )
+        _check_one(
+            f"{name}: reset", tr.reset, src.dim, args, dtype, strict,
+            lambda s, m=tgt.dim: None
+            if s == (m,)
+            else f"returned shape {s}; expected ({m},), the target mode's dim.",
+        )

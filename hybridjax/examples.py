@@ -1,0 +1,198 @@
+"""Built-in example systems, each with a closed-form solution it is tested against.
+
+- `bouncing_ball`: one mode, one self-transition (the seed's Zeno example).
+- `thermostat`: the seed's practice problem 2, heat / off / cool with hysteresis.
+- `wall_particle`: a 4-D flight mode and a 2-D sliding mode (modes of different dimension).
+- `ceiling_ball`: a ball thrown at a ceiling with plastic impact; the reset lands in the
+  interior of the lift-off guard (the seed's "reset into guards", a zero-length epoch).
+
+The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
+"""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._system import HybridSystem, Mode, Transition
+
+# ----------------------------------------------------------------------------- ball
+
+
+def bouncing_ball() -> HybridSystem:
+    r"""A ball bouncing on the floor with restitution e.
+
+    State x = (h, v); flow (v, -g); guard g(x) = h (fires when h <= 0, falling); reset
+    (h, v) -> (h, -e v). `args = {"g": ..., "e": ...}`.
+    """
+    flight = Mode("flight", flow=lambda t, x, args: jnp.array([x[1], -args["g"]]), dim=2)
+    bounce = Transition(
+        "flight",
+        "flight",
+        guard=lambda t, x, args: x[0],
+        reset=lambda t, x, args: jnp.array([x[0], -args["e"] * x[1]]),
+        name="bounce",
+    )
+    return HybridSystem([flight], [bounce])
+
+
+def bouncing_ball_closed_form(h0: float, v0: float, g: float, e: float, t1: float,
+                              max_events: int = 10_000) -> dict:
+    """Impact times, post-impact velocities and the state at t1 of the bouncing ball.
+
+    First impact at t_1 = (v0 + sqrt(v0^2 + 2 g h0)) / g with speed w_1 = sqrt(v0^2 + 2 g h0);
+    then w_{k+1} = e w_k and flights of length 2 e w_k / g.
+    """
+    w = math.sqrt(v0 * v0 + 2 * g * h0)
+    t = (v0 + w) / g
+    times, v_after = [], []
+    t_last, v_last, h_last = 0.0, v0, h0
+    while t <= t1 and len(times) < max_events:
+        times.append(t)
+        v_after.append(e * w)
+        t_last, v_last, h_last = t, e * w, 0.0
+        w = e * w
+        t = t + 2 * w / g
+    dt = t1 - t_last
+    final = (h_last + v_last * dt - 0.5 * g * dt * dt, v_last - g * dt)
+    return dict(event_times=np.array(times), post_velocities=np.array(v_after),
+                final_state=np.array(final))
+
+
+def zeno_time(h0: float, g: float, e: float) -> float:
+    """Accumulation time of the ball dropped from rest: sqrt(2 h0 / g) (1 + e) / (1 - e)."""
+    return math.sqrt(2 * h0 / g) * (1 + e) / (1 - e)
+
+
+# ----------------------------------------------------------------------------- thermostat
+
+
+def thermostat() -> HybridSystem:
+    r"""The seed's HVAC thermostat (practice problem 2), with linear thermal dynamics.
+
+    Room temperature T obeys dT/dt = a (T_amb - T) + P_mode with P = 0 (off), +P_heat
+    (heat), -P_cool (cool). With setpoint s: off -> heat when T <= s - 4, heat -> off when
+    T >= s - 2, off -> cool when T >= s + 4, cool -> off when T <= s + 2. Domains:
+    off |T - s| <= 4, heat T <= s - 2, cool T >= s + 2.
+    `args = {"a", "T_amb", "P_heat", "P_cool", "s"}`.
+    """
+
+    def flow(power):
+        return lambda t, x, p: jnp.array([p["a"] * (p["T_amb"] - x[0]) + power(p)])
+
+    off = Mode("off", flow(lambda p: 0.0), dim=1,
+               domain=lambda t, x, p: jnp.array([x[0] - (p["s"] - 4), (p["s"] + 4) - x[0]]))
+    heat = Mode("heat", flow(lambda p: p["P_heat"]), dim=1,
+                domain=lambda t, x, p: (p["s"] - 2) - x[0])
+    cool = Mode("cool", flow(lambda p: -p["P_cool"]), dim=1,
+                domain=lambda t, x, p: x[0] - (p["s"] + 2))
+    return HybridSystem(
+        [off, heat, cool],
+        [
+            Transition("off", "heat", guard=lambda t, x, p: x[0] - (p["s"] - 4), name="heat on"),
+            Transition("heat", "off", guard=lambda t, x, p: (p["s"] - 2) - x[0], name="heat off"),
+            Transition("off", "cool", guard=lambda t, x, p: (p["s"] + 4) - x[0], name="cool on"),
+            Transition("cool", "off", guard=lambda t, x, p: x[0] - (p["s"] + 2), name="cool off"),
+        ],
+    )
+
+
+def thermostat_closed_form(T0: float, mode0: str, p: dict, t1: float) -> dict:
+    """Switching times and modes of the thermostat: T(t) = T_eq + (T0 - T_eq) e^{-a t}.
+
+    In each mode T relaxes to T_eq = T_amb + P / a; the time to reach a threshold T* is
+    ln((T0 - T_eq) / (T* - T_eq)) / a (infinite when T* is not between T0 and T_eq).
+    """
+    a, s = p["a"], p["s"]
+    power = {"off": 0.0, "heat": p["P_heat"], "cool": -p["P_cool"]}
+    # (target, threshold, sign): the guard sign * (T - threshold) <= 0 fires.
+    exits = {"off": [("heat", s - 4, 1.0), ("cool", s + 4, -1.0)], "heat": [("off", s - 2, -1.0)],
+             "cool": [("off", s + 2, 1.0)]}
+    t, T, mode = 0.0, T0, mode0
+    times, modes = [], [mode0]
+    while True:
+        T_eq = p["T_amb"] + power[mode] / a
+        best = (math.inf, None, None)
+        for target, thr, sign in exits[mode]:
+            if sign * (T - thr) <= 0:  # already in the guard: fires at once
+                cand = (0.0, target, T)
+            else:
+                r = (T - T_eq) / (thr - T_eq) if thr != T_eq else -1.0
+                cand = (math.log(r) / a, target, thr) if r >= 1.0 else (math.inf, None, None)
+            best = min(best, cand, key=lambda b: b[0])
+        dt, target, thr = best
+        if t + dt > t1:
+            T = T_eq + (T - T_eq) * math.exp(-a * (t1 - t))
+            return dict(event_times=np.array(times), modes=modes, final_state=np.array([T]),
+                        final_mode=mode)
+        t, T, mode = t + dt, thr, target
+        times.append(t)
+        modes.append(mode)
+
+
+# ----------------------------------------------------------------------------- wall
+
+
+def wall_particle() -> HybridSystem:
+    r"""A particle flying in a vertical plane that hits a wall at x = w and sticks to it.
+
+    Flight (4-D): x = (x, z, v_x, v_z), flow (v_x, v_z, 0, -g). Guard w - x (the wall).
+    Reset (x, z, v_x, v_z) -> (z, v_z): the normal velocity is absorbed (plastic contact).
+    Slide (2-D): (z, v_z), flow (v_z, -g - c v_z), viscous friction c along the wall.
+    `args = {"g", "w", "c"}`.
+    """
+    flight = Mode("flight", lambda t, x, p: jnp.array([x[2], x[3], 0.0 * x[2], -p["g"] + 0.0 * x[3]]),
+                  dim=4)
+    slide = Mode("slide", lambda t, x, p: jnp.array([x[1], -p["g"] - p["c"] * x[1]]), dim=2)
+    hit = Transition("flight", "slide", guard=lambda t, x, p: p["w"] - x[0],
+                     reset=lambda t, x, p: jnp.array([x[1], x[3]]), name="stick")
+    return HybridSystem([flight, slide], [hit])
+
+
+def wall_particle_closed_form(x0, p: dict, t1: float) -> dict:
+    """Impact at t* = (w - x) / v_x; then v(tau) = -g/c + (v* + g/c) e^{-c tau} on the wall."""
+    x, z, vx, vz = (float(v) for v in x0)
+    g, w, c = p["g"], p["w"], p["c"]
+    ts = (w - x) / vx
+    zs, vzs = z + vz * ts - 0.5 * g * ts * ts, vz - g * ts
+    tau = t1 - ts
+    v_inf = -g / c
+    v = v_inf + (vzs - v_inf) * math.exp(-c * tau)
+    zf = zs + v_inf * tau + (vzs - v_inf) * (1 - math.exp(-c * tau)) / c
+    return dict(event_time=ts, state_before=np.array([w, zs, vx, vzs]),
+                state_after=np.array([zs, vzs]), final_state=np.array([zf, v]))
+
+
+# ----------------------------------------------------------------------------- ceiling
+
+
+def ceiling_ball() -> HybridSystem:
+    r"""A ball thrown up at a ceiling at height H, with plastic impact.
+
+    Flight: (z, v), flow (v, -g); guard H - z; reset (z, v) -> (z, 0) into "contact".
+    Contact: flow 0; the ceiling's normal force per unit mass needed to hold the ball is
+    lambda = -g < 0, so the lift-off guard lambda <= 0 holds at once: the reset lands in
+    the interior of the lift-off guard and the contact epoch has zero length.
+    `args = {"g", "H"}`.
+    """
+    flight = Mode("flight", lambda t, x, p: jnp.array([x[1], -p["g"] + 0.0 * x[1]]), dim=2)
+    contact = Mode("contact", lambda t, x, p: jnp.zeros_like(x), dim=2)
+    return HybridSystem(
+        [flight, contact],
+        [
+            Transition("flight", "contact", guard=lambda t, x, p: p["H"] - x[0],
+                       reset=lambda t, x, p: jnp.array([x[0], 0.0 * x[1]]), name="impact"),
+            Transition("contact", "flight", guard=lambda t, x, p: -p["g"] + 0.0 * x[0],
+                       name="lift-off"),
+        ],
+    )
+
+
+def ceiling_ball_closed_form(z0: float, v0: float, p: dict, t1: float) -> dict:
+    """Impact at the smaller root of z0 + v0 t - g t^2 / 2 = H, then free fall from rest."""
+    g, H = p["g"], p["H"]
+    disc = v0 * v0 - 2 * g * (H - z0)
+    ts = (v0 - math.sqrt(disc)) / g
+    dt = t1 - ts
+    return dict(event_time=ts, impact_velocity=v0 - g * ts,
+                final_state=np.array([H - 0.5 * g * dt * dt, -g * dt]))

@@ -1,0 +1,57 @@
+"""Shared helpers: compiled runners reused across tests (JAX compiles are slow on 2 cores)."""
+
+import functools
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import hybridjax as hj
+from hybridjax import examples
+
+TIGHT = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+BALL = examples.bouncing_ball()
+BALL_ARGS = {"g": 9.8, "e": 0.8}
+THERMO = examples.thermostat()
+WALL = examples.wall_particle()
+CEILING = examples.ceiling_ball()
+
+
+def tree_allclose(a, b, rtol=1e-8, atol=1e-8) -> bool:
+    leaves = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
+        lambda x, y: np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol), a, b))
+    return all(leaves)
+
+
+def central_difference(f, x, eps=None):
+    """Jacobian of f at x by central differences, step sqrt(eps) * max(1, |x_i|)."""
+    x = np.asarray(x, dtype=np.float64)
+    base = np.sqrt(np.finfo(np.float64).eps) if eps is None else eps
+    cols = []
+    for i in range(x.size):
+        h = base * max(1.0, abs(x[i]))
+        e = np.zeros_like(x)
+        e[i] = h
+        cols.append((np.asarray(f(x + e)) - np.asarray(f(x - e))) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+@functools.cache
+def ball_runner(t1: float, max_epochs: int = 64, adjoint: str = "checkpointed"):
+    """jit(simulate) of the ball with x0 and args traced; cached per (t1, max_epochs)."""
+    adj = diffrax.ForwardMode() if adjoint == "forward" else diffrax.RecursiveCheckpointAdjoint()
+
+    def run(x0, args):
+        return hj.simulate(BALL, x0, "flight", 0.0, t1, args, stepsize_controller=TIGHT,
+                           max_epochs=max_epochs, adjoint=adj)
+
+    return jax.jit(run)
+
+
+def ball_reference(h0, v0, g, e, t1):
+    return examples.bouncing_ball_closed_form(float(h0), float(v0), float(g), float(e), float(t1))
+
+
+def as_f64(x):
+    return jnp.asarray(x, dtype=jnp.float64)

@@ -1,0 +1,95 @@
+"""Derivatives through the epoch loop, against closed forms and finite differences."""
+
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import hybridjax as hj
+
+from helpers import BALL, BALL_ARGS, CEILING, TIGHT, ball_reference, ball_runner, central_difference
+
+
+def test_event_time_gradient_matches_the_implicit_function_theorem():
+    # t1 = (v0 + sqrt(v0^2 + 2 g h0)) / g; the second impact t2 = t1 + 2 e w / g.
+    def times(h0, v0, g, e):
+        sol = ball_runner(3.0)(jnp.stack([h0, v0]), {"g": g, "e": e})
+        return sol.event_times[:2]
+
+    point = (1.0, 0.5, 9.8, 0.8)
+    J = jax.jit(jax.jacrev(times, argnums=(0, 1, 2, 3)))(*map(jnp.asarray, point))
+
+    def closed(h0, v0, g, e):
+        w = math.sqrt(v0 * v0 + 2 * g * h0)
+        t1 = (v0 + w) / g
+        return np.array([t1, t1 + 2 * e * w / g])
+
+    fd = central_difference(lambda p: closed(*p), np.array(point))
+    np.testing.assert_allclose(np.stack(J, axis=-1), fd, rtol=1e-6)
+
+
+def test_final_state_jacobian_reverse_forward_and_finite_differences():
+    x0 = jnp.array([1.0, 0.3])
+    f_rev = lambda x: ball_runner(2.0)(x, BALL_ARGS).final_state  # noqa: E731
+    f_fwd = lambda x: ball_runner(2.0, adjoint="forward")(x, BALL_ARGS).final_state  # noqa: E731
+    J_rev = jax.jit(jax.jacrev(f_rev))(x0)
+    J_fwd = jax.jit(jax.jacfwd(f_fwd))(x0)
+    fd = central_difference(lambda x: ball_reference(x[0], x[1], 9.8, 0.8, 2.0)["final_state"],
+                            np.asarray(x0))
+    assert int(ball_runner(2.0)(x0, BALL_ARGS).num_events) >= 3
+    np.testing.assert_allclose(J_rev, fd, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(J_fwd, J_rev, rtol=1e-9, atol=1e-12)
+
+
+def test_gradient_with_respect_to_t0_and_t1():
+    def final(t0, t1):
+        return hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", t0, t1, BALL_ARGS,
+                           stepsize_controller=TIGHT).final_state
+
+    d0, d1 = jax.jit(jax.jacrev(final, argnums=(0, 1)))(jnp.asarray(0.0), jnp.asarray(1.0))
+    # autonomous: shifting t0 shifts the execution, d x(t1)/d t0 = -d x(t1)/d t1 = -F(x(t1))
+    x1 = ball_reference(1.0, 0.0, 9.8, 0.8, 1.0)["final_state"]
+    np.testing.assert_allclose(d1, [x1[1], -9.8], rtol=1e-8)
+    np.testing.assert_allclose(d0, [-x1[1], 9.8], rtol=1e-8)
+
+
+def test_zero_length_epoch_chain_sensitivity_ceiling():
+    # d v(T) / d v0 = g dt*/dv0 = -g t*/v* = 1 - sqrt(5) for z0 = 0, v0 = 7, H = 2, g = 9.8, T = 1.
+    p = {"g": 9.8, "H": 2.0}
+    J = jax.jacrev(lambda x0: hj.simulate(CEILING, x0, "flight", 0.0, 1.0, p,
+                                          stepsize_controller=TIGHT).final_state)(jnp.array([0.0, 7.0]))
+    np.testing.assert_allclose(J[1, 1], 1 - math.sqrt(5), rtol=1e-8)
+    assert np.all(np.isfinite(np.asarray(J)))
+
+
+def test_padding_never_poisons_gradients():
+    # 2 events recorded of 16 slots; the sum over all slots (padding masked) has a finite
+    # gradient, and the padded slots contribute nothing.
+    def loss(h0):
+        sol = ball_runner(1.5, max_epochs=16)(jnp.stack([h0, 0.0]), BALL_ARGS)
+        valid = jnp.arange(16) < sol.num_events
+        return jnp.sum(jnp.where(valid, sol.event_times, 0.0))
+
+    g = jax.grad(loss)(jnp.asarray(1.0))
+    ref = ball_reference(1.0, 0.0, 9.8, 0.8, 1.5)
+    n = len(ref["event_times"])
+    # each impact time scales with sqrt(h0): d/dh0 sum t_i = sum t_i / (2 h0)
+    np.testing.assert_allclose(g, np.sum(ref["event_times"][:n]) / 2, rtol=1e-8)
+
+
+def test_vmap_of_grad_over_initial_heights():
+    h0 = jnp.linspace(0.5, 1.5, 32)
+    f = lambda h: ball_runner(1.2)(jnp.stack([h, 0.0 * h]), BALL_ARGS).final_state[0]  # noqa: E731
+    g = jax.jit(jax.vmap(jax.grad(f)))(h0)
+    fd = np.array([central_difference(
+        lambda x: ball_reference(x[0], 0.0, 9.8, 0.8, 1.2)["final_state"][:1], np.array([h]))[0, 0]
+        for h in np.asarray(h0)])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_solver_options_are_diffrax_objects():
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 1.0, BALL_ARGS,
+                      solver=diffrax.Dopri8(), stepsize_controller=TIGHT)
+    np.testing.assert_allclose(sol.event_times[0], math.sqrt(2 / 9.8), atol=1e-12)

@@ -1,0 +1,86 @@
+"""Solution: saved states, dense evaluation, the hybrid time domain, dtypes, retracing."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import hybridjax as hj
+
+from helpers import BALL, BALL_ARGS, TIGHT, ball_reference
+
+
+def _ball_state(t, h0=1.0, g=9.8, e=0.8):
+    """Closed-form (h, v) of the ball dropped from rest, right-continuous at impacts."""
+    ref = ball_reference(h0, 0.0, g, e, t)
+    return ref["final_state"]
+
+
+def test_saveat_against_closed_form():
+    ts = jnp.linspace(0.0, 2.0, 41)
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 2.0, BALL_ARGS,
+                      stepsize_controller=TIGHT, saveat=diffrax.SaveAt(ts=ts))
+    expected = np.stack([_ball_state(float(t)) for t in ts])
+    np.testing.assert_allclose(sol.ys, expected, atol=1e-9)
+    np.testing.assert_array_equal(sol.saved_modes, np.zeros(41, int))
+
+
+def test_saveat_beyond_a_stop_is_padded():
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, BALL_ARGS,
+                      stepsize_controller=TIGHT, saveat=jnp.array([0.1, 2.9]), max_epochs=2)
+    assert sol.status == hj.Status.MAX_EPOCHS
+    np.testing.assert_allclose(sol.ys[0], [1 - 4.9 * 0.01, -0.98], atol=1e-10)
+    assert np.all(np.isinf(np.asarray(sol.ys[1]))) and int(sol.saved_modes[1]) == -1
+
+
+def test_evaluate_and_hybrid_time_domain():
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 2.0, BALL_ARGS,
+                      stepsize_controller=TIGHT)
+    ref = ball_reference(1.0, 0.0, 9.8, 0.8, 2.0)
+    times = jnp.array([0.0, 0.3, 0.9, 1.5, 1.99])
+    xs, modes = jax.vmap(sol.evaluate)(times)
+    np.testing.assert_allclose(xs, np.stack([_ball_state(float(t)) for t in times]), atol=1e-8)
+    np.testing.assert_array_equal(modes, 0)
+    x_out, m_out = sol.evaluate(2.5)
+    assert np.all(np.isinf(np.asarray(x_out))) and int(m_out) == -1
+    epochs = sol.hybrid_time_domain()
+    assert len(epochs) == len(ref["event_times"]) + 1
+    np.testing.assert_allclose([e.end for e in epochs[:-1]], ref["event_times"], atol=1e-10)
+    assert epochs[0].start == 0.0 and epochs[-1].end == 2.0
+    assert all(a.end == b.start for a, b in zip(epochs, epochs[1:], strict=False))
+
+
+def test_batched_solution_indexing_and_repr():
+    run = jax.vmap(lambda h: hj.simulate(BALL, jnp.stack([h, 0.0 * h]), "flight", 0.0, 1.0,
+                                         BALL_ARGS, max_epochs=4))
+    sol = run(jnp.array([1.0, 2.0]))
+    assert "batch (2,)" in repr(sol)
+    one = sol[1]
+    np.testing.assert_allclose(one.event_times[0], np.sqrt(2 * 2.0 / 9.8), atol=1e-8)
+    assert list(sol.status_name) == ["T1_REACHED", "T1_REACHED"]
+
+
+def test_float32_dtypes_are_preserved_and_accurate_to_float32():
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0], dtype=jnp.float32), "flight", 0.0, 2.0,
+                      BALL_ARGS, saveat=jnp.array([0.5]))
+    for name in ("event_times", "states_before", "states_after", "final_state", "final_time", "ys"):
+        assert getattr(sol, name).dtype == jnp.float32, name
+    ref = ball_reference(1.0, 0.0, 9.8, 0.8, 2.0)
+    n = len(ref["event_times"])
+    assert int(sol.num_events) == n
+    # float32 resolution of times around 1 is 6e-8; the default float32 tolerances are 1e-5.
+    np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], atol=5e-5)
+
+
+def test_batched_entry_point_does_not_retrace():
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(h0, e):
+        return jax.vmap(lambda h: hj.simulate(BALL, jnp.stack([h, 0.0 * h]), "flight", 0.0, 1.0,
+                                              {"g": 9.8, "e": e}, max_epochs=4))(h0)
+
+    a = run(jnp.array([1.0, 1.5]), 0.5)
+    b = run(jnp.array([0.7, 0.9]), 0.6)
+    np.testing.assert_allclose(a.event_times[:, 0], np.sqrt(2 * np.array([1.0, 1.5]) / 9.8), atol=1e-8)
+    np.testing.assert_allclose(b.event_times[:, 0], np.sqrt(2 * np.array([0.7, 0.9]) / 9.8), atol=1e-8)
