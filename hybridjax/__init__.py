@@ -6,6 +6,11 @@ execution of it (vmap it for thousands) and returns a `Solution`.
 """
 
 from . import examples as examples
+from ._periodic import PeriodicOrbit as PeriodicOrbit
+from ._periodic import periodic_orbit as periodic_orbit
+from ._saltation import VariationalJacobian as VariationalJacobian
+from ._saltation import saltation_matrix as saltation_matrix
+from ._saltation import variational_jacobian as variational_jacobian
 from ._simulate import simulate as simulate
 from ._solution import Epoch as Epoch
 from ._solution import Solution as Solution

@@ -61,6 +61,7 @@ class LoopState(eqx.Module):
     states_after: jax.Array
     epoch_modes: jax.Array
     simultaneous: jax.Array
+    grazing: jax.Array
     ys: jax.Array
     saved_modes: jax.Array
 
@@ -170,12 +171,15 @@ class Loop:
             states_after=jnp.full((E, n), jnp.inf, dt),
             epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
             simultaneous=jnp.zeros((E,), bool),
+            grazing=jnp.zeros((E,), bool),
             ys=ys,
             saved_modes=saved_modes,
         )
 
     # ----------------------------------------------------------------- jump
-    def jump(self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args) -> LoopState:
+    def jump(
+        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False
+    ) -> LoopState:
         """Record transition k at t_ev and apply its reset (or stop: epochs, non-finite, chattering)."""
         i = st.num_events
         full = i >= self.max_epochs
@@ -186,7 +190,7 @@ class Loop:
         recorded = eqx.tree_at(
             lambda s: (
                 s.event_times, s.transitions, s.states_before, s.states_after,
-                s.epoch_modes, s.simultaneous, s.num_events,
+                s.epoch_modes, s.simultaneous, s.grazing, s.num_events,
             ),
             st,
             (
@@ -196,6 +200,7 @@ class Loop:
                 st.states_after.at[i].set(y_after, mode="drop"),
                 st.epoch_modes.at[i + 1].set(target, mode="drop"),
                 st.simultaneous.at[i].set(simultaneous, mode="drop"),
+                st.grazing.at[i].set(grazing, mode="drop"),
                 i + 1,
             ),
         )
@@ -321,7 +326,7 @@ class Loop:
         if kern.num_transitions:
             dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
             interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
-            t_ev, y_before = self.event_point(mode, k, t_star, interp_e, args_e)
+            t_ev, y_before, grazing = self.event_point(mode, k, t_star, interp_e, args_e)
 
         # save: requested times inside (t, t_end], t_end the event time or the step's end.
         ys, saved_modes = st.ys, st.saved_modes
@@ -346,7 +351,9 @@ class Loop:
         accepted = _stop(accepted, t_next >= self.t1, Status.T1_REACHED)
         if kern.num_transitions:
             counted_e = mask_inputs(ev_active, counted)
-            evented = self.jump(counted_e, k, t_ev, y_before, simultaneous, jnp.array(False), args_e)
+            evented = self.jump(
+                counted_e, k, t_ev, y_before, simultaneous, jnp.array(False), args_e, grazing
+            )
         else:
             evented = accepted
         progressed = _select(keep, _select(any_event, evented, accepted), counted)
@@ -364,6 +371,9 @@ class Loop:
         With t* found without gradients and x*(theta) = interpolant(t*), the returned time is
         t* - (g(t*, x*) - [g]) / [D_t g + D_x g F] and the state x* + F (t - t*), [.] meaning
         stop_gradient: equal in value to (t*, x*), with dt = -dg / gdot and dx = dx* + F dt.
+        Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
+        (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
+        ill-conditioned.
         """
         kern = self.kern
         x_star = interp.evaluate(t_star)
@@ -371,9 +381,12 @@ class Loop:
         g = lambda tt, xx: kern.guards(mode, tt, xx, args)[k]  # noqa: E731
         g_val, gdot = jax.jvp(g, (t_star, x_star), (jnp.ones_like(t_star), F))
         gdot = sg(gdot)
+        gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
+        size = jnp.abs(gt) + jnp.linalg.norm(gx) * jnp.linalg.norm(sg(F))
+        grazing = jnp.abs(gdot) <= jnp.cbrt(self.eps) * size
         safe = jnp.where(gdot != 0, gdot, 1.0)
         t_ev = t_star - (g_val - sg(g_val)) / safe
-        return t_ev, x_star + F * (t_ev - t_star)
+        return t_ev, x_star + F * (t_ev - t_star), grazing
 
     # ----------------------------------------------------------------- the loop
     def body(self, st: LoopState) -> LoopState:

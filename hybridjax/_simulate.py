@@ -239,6 +239,7 @@ def simulate(
         states_before=st.states_before,
         states_after=st.states_after,
         simultaneous=st.simultaneous,
+        grazing=st.grazing,
         final_time=final_time,
         final_mode=st.mode,
         final_state=st.y,

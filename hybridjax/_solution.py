@@ -48,6 +48,10 @@ class Solution(eqx.Module):
     - `states_before`, `states_after` (E, n): x(t_i^-) and x(t_i^+) at each event.
     - `simultaneous` (E,): True where another guard was reached at the same instant (within
       the event tolerance) and lost on priority.
+    - `grazing` (E,): True where the flow met the guard nearly tangentially,
+      |dg/dt| <= eps^(1/3) (|D_t g| + |D_x g| |F|) (6e-6 in float64): the event time's derivative
+      -(dg/dtheta) / (dg/dt) is ill-conditioned there (infinite at exact tangency, where
+      hybridjax divides by 1 instead of 0, so this flag is the warning to read).
     - `final_time`, `final_mode`, `final_state`: where the execution stopped.
     - `status`: an `hj.Status`; everything before the stop is kept.
     - `ts`, `ys`, `saved_modes`: the requested save times, the state there and its mode
@@ -64,6 +68,7 @@ class Solution(eqx.Module):
     states_before: Float[Array, "*batch epochs dim"]
     states_after: Float[Array, "*batch epochs dim"]
     simultaneous: Bool[Array, "*batch epochs"]
+    grazing: Bool[Array, "*batch epochs"]
     final_time: Float[Array, "*batch"]
     final_mode: Int[Array, "*batch"]
     final_state: Float[Array, "*batch dim"]

@@ -196,3 +196,51 @@ def ceiling_ball_closed_form(z0: float, v0: float, p: dict, t1: float) -> dict:
     dt = t1 - ts
     return dict(event_time=ts, impact_velocity=v0 - g * ts,
                 final_state=np.array([H - 0.5 * g * dt * dt, -g * dt]))
+
+
+# ----------------------------------------------------------------------------- rimless wheel
+
+
+def rimless_wheel() -> HybridSystem:
+    r"""McGeer's rimless wheel rolling down a slope of angle gamma, spokes 2 alpha apart.
+
+    Stance (theta, omega), theta the stance spoke's angle from vertical, g/l = 1:
+    flow (omega, sin theta). Heel strike when theta reaches gamma + alpha: guard
+    (gamma + alpha) - theta; reset (theta - 2 alpha, cos(2 alpha) omega) (angular momentum
+    about the new contact). `args = {"alpha", "gamma"}`.
+    """
+    stance = Mode("stance", lambda t, x, p: jnp.array([x[1], jnp.sin(x[0])]), dim=2)
+    strike = Transition(
+        "stance", "stance",
+        guard=lambda t, x, p: (p["gamma"] + p["alpha"]) - x[0],
+        reset=lambda t, x, p: jnp.array([x[0] - 2 * p["alpha"], jnp.cos(2 * p["alpha"]) * x[1]]),
+        name="heel strike",
+    )
+    return HybridSystem([stance], [strike])
+
+
+def rimless_wheel_closed_form(alpha: float, gamma: float) -> dict:
+    """The rolling gait's post-strike speed and return-map multiplier.
+
+    Energy: omega_-^2 = omega_+^2 + 4 sin(alpha) sin(gamma); strike: omega_+' = cos(2 alpha)
+    omega_-. Fixed point omega*^2 = 4 c^2 sin(alpha) sin(gamma) / (1 - c^2), c = cos(2 alpha);
+    multiplier d omega_+' / d omega_+ = c^2.
+    """
+    c = math.cos(2 * alpha)
+    w2 = 4 * c * c * math.sin(alpha) * math.sin(gamma) / (1 - c * c)
+    return dict(state=np.array([gamma - alpha, math.sqrt(w2)]), multiplier=c * c)
+
+
+# ----------------------------------------------------------------------------- pendulum
+
+
+def pendulum_wall() -> HybridSystem:
+    r"""A pendulum (g/l = 1) swinging against a wall at theta = theta_w with restitution e.
+
+    Flow (omega, -sin theta); guard theta_w - theta; reset (theta, -e omega).
+    `args = {"theta_w", "e"}`. A nonlinear example for saltation and variational checks.
+    """
+    swing = Mode("swing", lambda t, x, p: jnp.array([x[1], -jnp.sin(x[0])]), dim=2)
+    hit = Transition("swing", "swing", guard=lambda t, x, p: p["theta_w"] - x[0],
+                     reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]), name="wall")
+    return HybridSystem([swing], [hit])

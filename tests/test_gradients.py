@@ -31,14 +31,18 @@ def test_event_time_gradient_matches_the_implicit_function_theorem():
 
 
 def test_final_state_jacobian_reverse_forward_and_finite_differences():
-    x0 = jnp.array([1.0, 0.3])
-    f_rev = lambda x: ball_runner(2.0)(x, BALL_ARGS).final_state  # noqa: E731
-    f_fwd = lambda x: ball_runner(2.0, adjoint="forward")(x, BALL_ARGS).final_state  # noqa: E731
-    J_rev = jax.jit(jax.jacrev(f_rev))(x0)
-    J_fwd = jax.jit(jax.jacfwd(f_fwd))(x0)
-    fd = central_difference(lambda x: ball_reference(x[0], x[1], 9.8, 0.8, 2.0)["final_state"],
-                            np.asarray(x0))
-    assert int(ball_runner(2.0)(x0, BALL_ARGS).num_events) >= 3
+    # d x(T) / d (h0, v0, e) after several bounces: jacrev, jacfwd, and central differences
+    # of the closed form agree.
+    p0 = jnp.array([1.0, 0.3, 0.8])
+
+    def final(p, adjoint):
+        return ball_runner(2.0, adjoint=adjoint)(p[:2], {"g": 9.8, "e": p[2]}).final_state
+
+    J_rev = jax.jit(jax.jacrev(lambda p: final(p, "checkpointed")))(p0)
+    J_fwd = jax.jit(jax.jacfwd(lambda p: final(p, "forward")))(p0)
+    fd = central_difference(lambda p: ball_reference(p[0], p[1], 9.8, p[2], 2.0)["final_state"],
+                            np.asarray(p0))
+    assert int(ball_runner(2.0)(p0[:2], BALL_ARGS).num_events) >= 3
     np.testing.assert_allclose(J_rev, fd, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(J_fwd, J_rev, rtol=1e-9, atol=1e-12)
 

@@ -1,0 +1,52 @@
+"""Shared benchmark helpers: machine/version record, warm-up-then-time, JSON output."""
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import jax
+
+
+def machine_info() -> dict:
+    import diffrax
+    import equinox
+    import numpy
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return dict(
+        cpu=cpu, cores=os.cpu_count(), platform=platform.platform(),
+        device=str(jax.devices()[0]), python=platform.python_version(),
+        jax=jax.__version__, diffrax=diffrax.__version__, equinox=equinox.__version__,
+        numpy=numpy.__version__, x64=bool(jax.config.jax_enable_x64),
+    )
+
+
+def timed(fn, *args, repeat: int = 3):
+    """(compile_s, run_s, out): first call minus best later call; best of `repeat` runs."""
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t)
+    return max(first - best, 0.0), best, out
+
+
+def write_json(name: str, payload: dict) -> Path:
+    out = Path(__file__).parent / "results"
+    out.mkdir(exist_ok=True)
+    path = out / f"{name}.json"
+    path.write_text(json.dumps(payload, indent=2, default=float))
+    return path

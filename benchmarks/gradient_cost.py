@@ -1,0 +1,74 @@
+"""Cost of a gradient through the epoch loop relative to the forward solve, and memory.
+
+Bouncing ball (e = 0.8, h0 ~ U(0.5, 1.5), v0 ~ U(-1, 1), T = 2.5, Tsit5, rtol = atol = 1e-9,
+float64). For batch sizes 1 and 1,000: forward solve; reverse mode (jax.grad of the summed
+final state w.r.t. x0 and e, checkpointed loop); forward mode (jax.jacfwd, ForwardMode loop).
+Then the compiled temporary memory of reverse mode against the number of epochs.
+
+    python benchmarks/gradient_cost.py          # prints tables, writes results/gradient_cost.json
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from _common import machine_info, timed, write_json
+
+import hybridjax as hj
+
+jax.config.update("jax_enable_x64", True)
+BALL = hj.examples.bouncing_ball()
+CTRL = diffrax.PIDController(rtol=1e-9, atol=1e-9)
+
+
+def make(t1, max_epochs, adjoint):
+    def final(x0, e):
+        return hj.simulate(BALL, x0, "flight", 0.0, t1, {"g": 9.8, "e": e}, stepsize_controller=CTRL,
+                           max_epochs=max_epochs, adjoint=adjoint).final_state
+    return final
+
+
+def main():
+    rng = np.random.default_rng(0)
+    rows = []
+    for n in (1, 1000):
+        x0 = jnp.asarray(np.stack([rng.uniform(0.5, 1.5, n), rng.uniform(-1, 1, n)], axis=1))
+        e = jnp.full((n,), 0.8)
+        fwd_solve = jax.jit(jax.vmap(make(2.5, 32, diffrax.RecursiveCheckpointAdjoint())))
+        rev = jax.jit(jax.vmap(jax.grad(lambda x, e: jnp.sum(make(2.5, 32, diffrax.RecursiveCheckpointAdjoint())(x, e)),
+                                        argnums=(0, 1))))
+        fwd = jax.jit(jax.vmap(jax.jacfwd(make(2.5, 32, diffrax.ForwardMode()), argnums=(0, 1))))
+        c0, t0, _ = timed(fwd_solve, x0, e)
+        c1, t1, _ = timed(rev, x0, e)
+        c2, t2, _ = timed(fwd, x0, e)
+        rows.append(dict(batch=n, forward_s=t0, reverse_s=t1, jacfwd_s=t2, reverse_ratio=t1 / t0,
+                         jacfwd_ratio=t2 / t0, compile_forward_s=c0, compile_reverse_s=c1, compile_jacfwd_s=c2))
+    print("gradient cost relative to the forward solve (bouncing ball, T = 2.5, ~5 events)")
+    print(f"{'batch':>6} {'forward s':>10} {'grad (rev) s':>13} {'ratio':>6} {'jacfwd s':>9} {'ratio':>6}"
+          f" {'compile f/r/fwd s':>18}")
+    for r in rows:
+        print(f"{r['batch']:>6} {r['forward_s']:>10.4f} {r['reverse_s']:>13.4f} {r['reverse_ratio']:>6.1f}"
+              f" {r['jacfwd_s']:>9.4f} {r['jacfwd_ratio']:>6.1f}   {r['compile_forward_s']:.1f}/"
+              f"{r['compile_reverse_s']:.1f}/{r['compile_jacfwd_s']:.1f}")
+
+    mem = []
+    x = jnp.array([1.0, 0.0])
+    for epochs in (4, 16, 64):
+        # e close to 1 keeps the bounces long, so `epochs` of them fit before T.
+        t1 = 0.9 * epochs * 2 * np.sqrt(2 / 9.8)
+        g = jax.jit(jax.grad(lambda x: jnp.sum(make(t1, epochs, diffrax.RecursiveCheckpointAdjoint())(x, 0.999))))
+        compiled = g.lower(x).compile()
+        ma = compiled.memory_analysis()
+        n_ev = int(hj.simulate(BALL, x, "flight", 0.0, t1, {"g": 9.8, "e": 0.999}, stepsize_controller=CTRL,
+                               max_epochs=epochs).num_events)
+        mem.append(dict(max_epochs=epochs, events=n_ev, temp_bytes=int(ma.temp_size_in_bytes)))
+    print("\nreverse-mode compiled temporary memory against the number of epochs (one execution)")
+    print(f"{'max_epochs':>10} {'events':>7} {'temp MiB':>9}")
+    for m in mem:
+        print(f"{m['max_epochs']:>10} {m['events']:>7} {m['temp_bytes'] / 2**20:>9.2f}")
+    path = write_json("gradient_cost", dict(machine=machine_info(), cost=rows, memory=mem))
+    print(f"\nwrote {path}")
+
+
+if __name__ == "__main__":
+    main()
