@@ -97,3 +97,29 @@ def test_solver_options_are_diffrax_objects():
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 1.0, BALL_ARGS,
                       solver=diffrax.Dopri8(), stepsize_controller=TIGHT)
     np.testing.assert_allclose(sol.event_times[0], math.sqrt(2 / 9.8), atol=1e-12)
+
+
+def test_gradient_wrt_a_guard_parameter_and_of_saved_states():
+    # Mode I (p, q) flows at (a, r) until p = c t; then x = p + q + b t in mode J, flowing at d.
+    # t* = p0 / (c - a); a saved state after the event: x(s) = p0 + q0 + (a + r + b) t* + d (s - t*).
+    I = hj.Mode("I", lambda t, x, k: jnp.array([k["a"] + 0.0 * x[0], k["r"] + 0.0 * x[1]]), dim=2)
+    J = hj.Mode("J", lambda t, x, k: jnp.array([k["d"] + 0.0 * x[0]]), dim=1)
+    sys = hj.HybridSystem([I, J], [hj.Transition(
+        "I", "J", guard=lambda t, x, k: x[0] - k["c"] * t,
+        reset=lambda t, x, k: jnp.array([x[0] + x[1] + k["b"] * t]))])
+    k0 = dict(a=-1.0, r=0.5, c=0.75, b=2.0, d=-0.3)
+    x0 = jnp.array([1.75, -0.3])
+
+    def outs(k):
+        sol = hj.simulate(sys, x0, "I", 0.0, 2.0, k, stepsize_controller=TIGHT, saveat=jnp.array([1.5]))
+        return sol.event_times[0], sol.ys[0, 0]
+
+    (dt_dk, dys_dk) = jax.jit(jax.jacrev(outs))(k0)
+    a, r, c, b, d = (k0[n] for n in "arcbd")
+    p0, s = 1.75, 1.5
+    t_star = p0 / (c - a)
+    np.testing.assert_allclose(dt_dk["c"], -p0 / (c - a) ** 2, rtol=1e-9)
+    np.testing.assert_allclose(dt_dk["a"], p0 / (c - a) ** 2, rtol=1e-9)
+    np.testing.assert_allclose(dys_dk["c"], (a + r + b - d) * (-p0 / (c - a) ** 2), rtol=1e-9)
+    np.testing.assert_allclose(dys_dk["b"], t_star, rtol=1e-9)
+    np.testing.assert_allclose(dys_dk["d"], s - t_star, rtol=1e-9)
