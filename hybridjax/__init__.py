@@ -6,6 +6,9 @@ execution of it (vmap it for thousands) and returns a `Solution`.
 """
 
 from . import examples as examples
+from ._montecarlo import MonteCarloResult as MonteCarloResult
+from ._montecarlo import monte_carlo as monte_carlo
+from ._montecarlo import wilson_interval as wilson_interval
 from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
 from ._saltation import VariationalJacobian as VariationalJacobian
@@ -19,6 +22,7 @@ from ._status import Status as Status
 from ._system import HybridSystem as HybridSystem
 from ._system import Mode as Mode
 from ._system import Transition as Transition
+from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"

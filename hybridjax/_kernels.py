@@ -16,6 +16,7 @@ import jax.tree_util as jtu
 from jax import lax
 
 from ._system import HybridSystem
+from ._validation import domain_sizes
 
 
 def mask_inputs(active, tree):
@@ -49,14 +50,33 @@ def dispatch(index, branches: list[Callable], *operands):
 
 
 class Kernels:
-    """Padded, mode-dispatched flows, guards, resets and guard Lie derivatives of a system."""
+    """Padded, mode-dispatched flows, resets and *watched functions* of a system.
 
-    def __init__(self, system: HybridSystem):
+    The watched functions are, in priority order, the K guards g_k (a transition fires when
+    one reaches <= 0) and then the W domain components a_Ij of every mode (the execution is
+    blocked when one of the current mode's reaches <= 0 before any guard does).
+    """
+
+    def __init__(self, system: HybridSystem, args=None, dtype=None):
         self.system = system
         self.n = system.max_dim
         self.num_transitions = system.num_transitions
         self.sources = jnp.asarray(system.sources, dtype=jnp.int32)
         self.targets = jnp.asarray(system.targets, dtype=jnp.int32)
+        self.completion_targets = jnp.asarray(system.completion_targets, dtype=jnp.int32)
+        comp = [system.completion_of(i) for i in range(system.num_modes)]
+        self.completion_of_mode = jnp.asarray(comp, dtype=jnp.int32)
+        watch: list[tuple[int, Callable]] = [
+            (system.sources[k], self._guard_fn(k)) for k in range(self.num_transitions)
+        ]
+        if any(m.domain is not None for m in system.modes):
+            sizes = domain_sizes(system, args, jnp.result_type(float) if dtype is None else dtype)
+            for i, m_i in enumerate(sizes):
+                for j in range(m_i):
+                    watch.append((i, self._domain_fn(i, j)))
+        self.watch = watch
+        self.num_watch = len(watch)
+        self.watch_sources = jnp.asarray([w[0] for w in watch], dtype=jnp.int32)
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -73,21 +93,27 @@ class Kernels:
         n_src = self.system.modes[self.system.sources[k]].dim
         return lambda t, y, args: jnp.asarray(tr.guard(t, y[:n_src], args))
 
+    def _domain_fn(self, i: int, j: int) -> Callable:
+        mode = self.system.modes[i]
+        return lambda t, y, args: jnp.reshape(jnp.asarray(mode.domain(t, y[: mode.dim], args)), (-1,))[j]
+
     def outgoing_mask(self, mode) -> jax.Array:
-        """(K,) bool: which transitions leave `mode`."""
-        if self.num_transitions == 0:
+        """(K + W,) bool: which watched functions belong to `mode`."""
+        if self.num_watch == 0:
             return jnp.zeros((0,), dtype=bool)
-        return self.sources == mode
+        return self.watch_sources == mode
 
     def guards(self, mode, t, y, args) -> jax.Array:
-        """(K,) guard values g_k(t, y); transitions not leaving `mode` read +1 (never fire)."""
-        if self.num_transitions == 0:
+        """(K + W,) watched values (guards, then domain components) of `mode` at (t, y).
+
+        Those not belonging to `mode` read +1 (never cross).
+        """
+        if self.num_watch == 0:
             return jnp.zeros((0,), dtype=y.dtype)
         values = []
-        for k in range(self.num_transitions):
-            active = mode == self.system.sources[k]
-            tt, yy, aa = mask_inputs(active, (t, y, args))
-            values.append(self._guard_fn(k)(tt, yy, aa).astype(y.dtype))
+        for src, fn in self.watch:
+            tt, yy, aa = mask_inputs(mode == src, (t, y, args))
+            values.append(fn(tt, yy, aa).astype(y.dtype))
         g = jnp.stack(values)
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
 
@@ -101,25 +127,34 @@ class Kernels:
 
         return dispatch(k, [branch(kk) for kk in range(self.num_transitions)], t, y, args)
 
+    def completion_reset(self, c, t, y, args) -> jax.Array:
+        """The reset of ZenoCompletion `c` (traced index) on the padded state."""
+
+        def branch(cc):
+            comp = self.system.completions[cc]
+            n_src = self.system.modes[self.system.completion_sources[cc]].dim
+            return lambda t, y, args: _pad(comp.reset(t, y[:n_src], args), self.n).astype(y.dtype)
+
+        return dispatch(c, [branch(cc) for cc in range(len(self.system.completions))], t, y, args)
+
     # ---------------------------------------------------------------- guard jets
     def guard_jets(self, mode, t, y, args, rtol, atol, tol_t) -> dict[str, jax.Array]:
-        """Lie derivatives of every guard along the current flow, and a tolerance band.
+        """Lie derivatives of every watched function along the current flow, and a tolerance band.
 
         L0 = g, L_{j+1} = d/dt L_j along (t, x) -> (1, F_I(t, x)), so L1 = D_t g + D_x g F_I.
         `band` = sum_i |d g/d x_i| (atol + rtol |x_i|) + |D_t g| tol_t: the change in g that
         the solver's own tolerances cannot resolve. `scale1` = |D_t g| + sum_i |D_x g_i F_i|,
         against which L1 is judged zero (cancellation) or not.
         """
-        K = self.num_transitions
+        K = self.num_watch
         if K == 0:
             z = jnp.zeros((0,), dtype=y.dtype)
             return dict(L0=z, L1=z, L2=z, L3=z, band=z, scale1=z)
         out: dict[str, list] = {key: [] for key in ("L0", "L1", "L2", "L3", "band", "scale1")}
-        for k in range(K):
-            src = self.system.sources[k]
+        for src, fn in self.watch:
             active = mode == src
             tt, yy, aa = mask_inputs(active, (t, y, args))
-            g = lambda t_, y_: self._guard_fn(k)(t_, y_, aa).astype(y.dtype)  # noqa: E731
+            g = lambda t_, y_: fn(t_, y_, aa).astype(y.dtype)  # noqa: E731
             f = lambda t_, y_: self.mode_flow(src)(t_, y_, aa)  # noqa: E731
 
             def lie(h):

@@ -33,6 +33,7 @@ from jax import lax
 from ._events import departure_step_bound, first_crossings, locate_root, start_decision
 from ._kernels import Kernels, mask_inputs
 from ._status import Status
+from ._zeno import detect_zeno
 
 sg = lax.stop_gradient
 
@@ -62,6 +63,8 @@ class LoopState(eqx.Module):
     epoch_modes: jax.Array
     simultaneous: jax.Array
     grazing: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array
     ys: jax.Array
     saved_modes: jax.Array
 
@@ -99,11 +102,13 @@ class Loop:
         interior_points: int,
         event_tol,
         max_zero_epochs: int,
+        zeno: dict | None,
         loop_kind: str,
         checkpoints,
         dtype,
     ):
-        self.kern = Kernels(system)
+        self.kern = Kernels(system, args, dtype)
+        self.zeno = zeno
         self.system = system
         self.t1 = t1
         self.args = args
@@ -138,7 +143,7 @@ class Loop:
 
     # ----------------------------------------------------------------- init
     def init(self, t0, y0, mode0) -> LoopState:
-        n, E, K = self.kern.n, self.max_epochs, self.kern.num_transitions
+        n, E = self.kern.n, self.max_epochs
         dt = self.dtype
         args_ext = (mode0, self.args)
         solver_state = self.solver.init(self.terms, t0, self.t1, y0, args_ext)
@@ -158,7 +163,7 @@ class Loop:
             controller_state=controller_state,
             made_jump=jnp.array(True),
             at_start=jnp.array(True),
-            g_prev=jnp.zeros((K,), dt),
+            g_prev=jnp.zeros((self.kern.num_watch,), dt),
             num_events=jnp.array(0, jnp.int32),
             zero_run=jnp.array(0, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
@@ -172,22 +177,16 @@ class Loop:
             epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
             simultaneous=jnp.zeros((E,), bool),
             grazing=jnp.zeros((E,), bool),
+            zeno_time=jnp.array(jnp.inf, dt),
+            zeno_state=jnp.full((n,), jnp.inf, dt),
             ys=ys,
             saved_modes=saved_modes,
         )
 
     # ----------------------------------------------------------------- jump
-    def jump(
-        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False
-    ) -> LoopState:
-        """Record transition k at t_ev and apply its reset (or stop: epochs, non-finite, chattering)."""
+    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing):
         i = st.num_events
-        full = i >= self.max_epochs
-        y_after = self.kern.reset(k, t_ev, y_before, args)
-        finite = jnp.all(jnp.isfinite(y_after))
-        target = self.kern.targets[k]
-        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
-        recorded = eqx.tree_at(
+        return eqx.tree_at(
             lambda s: (
                 s.event_times, s.transitions, s.states_before, s.states_after,
                 s.epoch_modes, s.simultaneous, s.grazing, s.num_events,
@@ -195,7 +194,7 @@ class Loop:
             st,
             (
                 st.event_times.at[i].set(t_ev, mode="drop"),
-                st.transitions.at[i].set(k, mode="drop"),
+                st.transitions.at[i].set(index, mode="drop"),
                 st.states_before.at[i].set(y_before, mode="drop"),
                 st.states_after.at[i].set(y_after, mode="drop"),
                 st.epoch_modes.at[i + 1].set(target, mode="drop"),
@@ -204,12 +203,26 @@ class Loop:
                 i + 1,
             ),
         )
+
+    def jump(
+        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False
+    ) -> LoopState:
+        """Record transition k at t_ev and apply its reset; then stop on too many epochs,
+        non-finite values, chattering, or Zeno (or complete the Zeno execution)."""
+        full = st.num_events >= self.max_epochs
+        y_after = self.kern.reset(k, t_ev, y_before, args)
+        finite = jnp.all(jnp.isfinite(y_after))
+        target = self.kern.targets[k]
+        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
+        recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing)
         jumped = eqx.tree_at(
             lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
             recorded,
             (t_ev, y_after, target, jnp.array(True), jnp.array(True), zero_run),
         )
         jumped = _stop(jumped, zero_run > self.max_zero_epochs, Status.CHATTERING)
+        if self.zeno is not None:
+            jumped = self.zeno_stage(jumped, args)
         # A non-finite reset keeps the event (its after-state shows the culprit) but ends the
         # execution at the pre-event state.
         bad = eqx.tree_at(lambda s: (s.t, s.y), recorded, (t_ev, y_before))
@@ -218,6 +231,35 @@ class Loop:
         not_recorded = _stop(not_recorded, jnp.array(True), Status.MAX_EPOCHS)
         out = _select(finite, jumped, bad)
         return _select(full, not_recorded, out)
+
+    def zeno_stage(self, st: LoopState, args) -> LoopState:
+        """After an event: if event times accumulate before t1, stop with ZENO or complete."""
+        is_zeno, t_inf, x_inf = detect_zeno(st.event_times, st.states_after, st.num_events,
+                                            self.t1, **self.zeno)
+        is_zeno = is_zeno & ~st.done
+        st = eqx.tree_at(
+            lambda s: (s.zeno_time, s.zeno_state),
+            st,
+            (jnp.where(is_zeno, t_inf, st.zeno_time), jnp.where(is_zeno, x_inf, st.zeno_state)),
+        )
+        stopped = _stop(st, is_zeno, Status.ZENO)
+        if not self.system.completions:
+            return stopped
+        c = self.kern.completion_of_mode[st.mode]
+        has = c >= 0
+        c_safe = jnp.maximum(c, 0)
+        st_c, x_c, t_c, args_c = mask_inputs(is_zeno & has, (st, x_inf, t_inf, args))
+        y_after = self.kern.completion_reset(c_safe, t_c, x_c, args_c)
+        target = self.kern.completion_targets[c_safe]
+        index = self.kern.num_transitions + c_safe
+        done = self._record(st_c, index, t_c, x_c, y_after, target, jnp.array(False), jnp.array(False))
+        done = eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
+            done,
+            (t_c, y_after, target, jnp.array(True), jnp.array(True), jnp.array(0, jnp.int32)),
+        )
+        done = _stop(done, st.num_events >= self.max_epochs, Status.MAX_EPOCHS)
+        return _select(is_zeno & has, done, stopped)
 
     # ----------------------------------------------------------------- start of an epoch
     def start_stage(self, st: LoopState) -> LoopState:
@@ -233,13 +275,21 @@ class Loop:
             F = self.kern.flow(mode, t, y, args)
             L0_out = jnp.where(outgoing, jets["L0"], 0.0)
             finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(L0_out))
-            if self.kern.num_transitions:
-                k = jnp.argmax(fire).astype(jnp.int32)
+            K = self.kern.num_transitions
+            k = jnp.argmax(fire).astype(jnp.int32) if self.kern.num_watch else jnp.array(0, jnp.int32)
+            # A domain component (index >= K) "firing" with no guard before it: the state is
+            # outside its domain (a reset outside the target domain, or x0) or leaving it.
+            blocked = _stop(st, jnp.array(True), Status.BLOCKED)
+            if K:
                 # Inputs of a branch not taken get no gradient (NaN-safe "double where").
-                st_f, args_f = mask_inputs(active & jnp.any(fire), (st, self.args))
-                fired = self.jump(st_f, k, st_f.t, st_f.y, jnp.sum(fire) > 1, jnp.array(True), args_f)
+                st_f, args_f = mask_inputs(active & jnp.any(fire) & (k < K), (st, self.args))
+                k_safe = jnp.minimum(k, K - 1)
+                fired = self.jump(
+                    st_f, k_safe, st_f.t, st_f.y, jnp.sum(fire[:K]) > 1, jnp.array(True), args_f
+                )
+                fired = _select(k < K, fired, blocked)
             else:
-                fired = st
+                fired = blocked
 
             args_ext = (mode, self.args)
             t_init, ctrl_state = self.controller.init(
@@ -308,7 +358,7 @@ class Loop:
                 g_k = lambda x: kern.guards(mode, x, interp_sg.evaluate(x), args_sg)[k]  # noqa: E731
                 return locate_root(g_k, a_k, b_k, tol)
 
-            tk = jax.vmap(root)(jnp.arange(kern.num_transitions), a, b)
+            tk = jax.vmap(root)(jnp.arange(kern.num_watch), a, b)
             tk = jnp.where(has, tk, jnp.inf)
             t_min = jnp.min(tk)
             cand = has & (tk <= t_min + tol)
@@ -318,12 +368,12 @@ class Loop:
         def no_event(_):
             return sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
 
-        if kern.num_transitions:
+        if kern.num_watch:
             t_star, k, simultaneous = lax.cond(eqxi.unvmap_any(any_event), locate, no_event, None)
         else:
             t_star, k, simultaneous = no_event(None)
         ev_active = active & any_event
-        if kern.num_transitions:
+        if kern.num_watch:
             dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
             interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
             t_ev, y_before, grazing = self.event_point(mode, k, t_star, interp_e, args_e)
@@ -349,13 +399,20 @@ class Loop:
             (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
         )
         accepted = _stop(accepted, t_next >= self.t1, Status.T1_REACHED)
-        if kern.num_transitions:
-            counted_e = mask_inputs(ev_active, counted)
-            evented = self.jump(
-                counted_e, k, t_ev, y_before, simultaneous, jnp.array(False), args_e, grazing
-            )
+        K = kern.num_transitions
+        if kern.num_watch:
+            # The domain left (index >= K) before any guard: BLOCKED at the exit, state kept.
+            blocked = eqx.tree_at(lambda s: (s.t, s.y), counted, (t_ev, y_before))
+            evented = _stop(blocked, jnp.array(True), Status.BLOCKED)
         else:
             evented = accepted
+        if K:
+            counted_e = mask_inputs(ev_active & (k < K), counted)
+            jumped = self.jump(
+                counted_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
+                args_e, grazing,
+            )
+            evented = _select(k < K, jumped, evented)
         progressed = _select(keep, _select(any_event, evented, accepted), counted)
         # A non-finite step that cannot be shrunk any further, or non-finite guards on an
         # accepted step, stop the run at the step's start, where everything was finite.

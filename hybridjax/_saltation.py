@@ -151,6 +151,11 @@ def variational_jacobian(
     n_events = int(sol.num_events)
     times = np.asarray(sol.event_times)[:n_events]
     trans = [int(k) for k in np.asarray(sol.transitions)[:n_events]]
+    if any(k >= system.num_transitions for k in trans):
+        raise NotImplementedError(
+            "variational_jacobian: the execution passes a Zeno completion, whose limit point "
+            "has no saltation matrix; linearise the execution before the completion."
+        )
     modes = [int(m) for m in np.asarray(sol.epoch_modes)[: n_events + 1]]
     t_start = float(sol.t0)
     mode = modes[0]

@@ -127,6 +127,10 @@ def simulate(
     event_tol: float | None = None,
     interior_points: int = 4,
     max_zero_epochs: int = 16,
+    zeno: bool = True,
+    zeno_window: int = 3,
+    zeno_ratio_tol: float = 0.05,
+    zeno_max_ratio: float = 0.99,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
     throw: bool = False,
 ) -> Solution:
@@ -168,6 +172,12 @@ def simulate(
     - `interior_points`: guards are also checked at this many interior points of each step's
       dense output, to catch a guard entered and left within one step.
     - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
+    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection. After each
+      event, if the last `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch
+      lengths lie in (0, zeno_max_ratio] and agree with the latest to `zeno_ratio_tol`
+      (relative), and the extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is
+      <= t1, the execution stops with `ZENO` (`sol.zeno_time`, `sol.zeno_state`), or jumps to
+      the limit through the mode's `ZenoCompletion` and continues.
     - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode), `ForwardMode()`
       (forward mode) or `DirectAdjoint()` (both): selects the kind of while loop.
     - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
@@ -189,6 +199,7 @@ def simulate(
         ("max_steps", max_steps, 1),
         ("interior_points", interior_points, 0),
         ("max_zero_epochs", max_zero_epochs, 0),
+        ("zeno_window", zeno_window, 1),
     ):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
@@ -202,6 +213,8 @@ def simulate(
     solver = _prepare_solver(solver, controller, kind)
     if dt0 is None and not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
         raise ValueError(f"{type(controller).__name__} needs dt0 (no error estimate to pick one).")
+    if not 0 < zeno_max_ratio < 1:
+        raise ValueError(f"zeno_max_ratio must be in (0, 1), got {zeno_max_ratio!r}.")
     if event_tol is None:
         event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
 
@@ -223,6 +236,8 @@ def simulate(
         interior_points=int(interior_points),
         event_tol=event_tol,
         max_zero_epochs=int(max_zero_epochs),
+        zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
+                  max_ratio=float(zeno_max_ratio)) if zeno else None,
         loop_kind=kind,
         checkpoints=checkpoints,
         dtype=dtype,
@@ -240,6 +255,8 @@ def simulate(
         states_after=st.states_after,
         simultaneous=st.simultaneous,
         grazing=st.grazing,
+        zeno_time=st.zeno_time,
+        zeno_state=st.zeno_state,
         final_time=final_time,
         final_mode=st.mode,
         final_state=st.y,

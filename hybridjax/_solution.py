@@ -44,7 +44,8 @@ class Solution(eqx.Module):
     - `event_times` (E,): t_2, t_3, ... the times at which transitions fired.
     - `num_events`: the number of transitions taken.
     - `epoch_modes` (E+1,): the mode index of each epoch (`-1` past the last).
-    - `transitions` (E,): the index (in `system.transitions`) of each transition taken.
+    - `transitions` (E,): the index (in `system.transitions`) of each transition taken; an
+      index K + c (K transitions) marks a jump through `system.completions[c]`.
     - `states_before`, `states_after` (E, n): x(t_i^-) and x(t_i^+) at each event.
     - `simultaneous` (E,): True where another guard was reached at the same instant (within
       the event tolerance) and lost on priority.
@@ -53,6 +54,8 @@ class Solution(eqx.Module):
       -(dg/dtheta) / (dg/dt) is ill-conditioned there (infinite at exact tangency, where
       hybridjax divides by 1 instead of 0, so this flag is the warning to read).
     - `final_time`, `final_mode`, `final_state`: where the execution stopped.
+    - `zeno_time`, `zeno_state`: the extrapolated accumulation time and limit state of a Zeno
+      execution (`inf` otherwise), whether it stopped with `ZENO` or was completed.
     - `status`: an `hj.Status`; everything before the stop is kept.
     - `ts`, `ys`, `saved_modes`: the requested save times, the state there and its mode
       (`inf` / `-1` for times the execution did not reach). At an event time the saved
@@ -69,6 +72,8 @@ class Solution(eqx.Module):
     states_after: Float[Array, "*batch epochs dim"]
     simultaneous: Bool[Array, "*batch epochs"]
     grazing: Bool[Array, "*batch epochs"]
+    zeno_time: Float[Array, "*batch"]
+    zeno_state: Float[Array, "*batch dim"]
     final_time: Float[Array, "*batch"]
     final_mode: Int[Array, "*batch"]
     final_state: Float[Array, "*batch dim"]
@@ -145,7 +150,7 @@ class Solution(eqx.Module):
         start_t = jnp.where(i == 0, self.t0, self.event_times[jnp.maximum(i - 1, 0)])
         start_x = jnp.where(i == 0, self.x0, self.states_after[jnp.maximum(i - 1, 0)])
         mode = self.epoch_modes[i]
-        kern = Kernels(self.system)
+        kern = Kernels(self.system, self.args, start_x.dtype)
         term = diffrax.ODETerm(lambda tt, y, a: kern.flow(mode, tt, y, a))
         solver = diffrax.Tsit5() if solver is None else solver
         if stepsize_controller is None:

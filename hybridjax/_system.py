@@ -113,6 +113,27 @@ class Transition(eqx.Module):
         return self.name if self.name is not None else f"{self.source}->{self.target}"
 
 
+class ZenoCompletion(eqx.Module):
+    """A completion of Zeno executions in mode `source` (Ames et al., "Is there life after Zeno?").
+
+    When event times accumulate in `source` (a Zeno execution, detected by `simulate`), the
+    execution jumps to the extrapolated Zeno limit (t_inf, x_inf) and continues in `target`
+    from `reset(t_inf, x_inf, args)`. A bouncing ball, for example, comes to rest:
+
+    ```python
+    rest = hj.ZenoCompletion("flight", "rest", reset=lambda t, x, args: x[:1] * 0.0)
+    ```
+    """
+
+    source: str | int = eqx.field(static=True)
+    target: str | int = eqx.field(static=True)
+    reset: Callable = _identity_reset
+
+    @property
+    def label(self) -> str:
+        return f"zeno:{self.source}->{self.target}"
+
+
 class HybridSystem(eqx.Module):
     """A hybrid dynamical system H = (J, Gamma, D, F, G, R): modes and the transitions between them.
 
@@ -127,6 +148,8 @@ class HybridSystem(eqx.Module):
     - `modes`: a sequence of `Mode`, names unique.
     - `transitions`: a sequence of `Transition`; a transition's index is its position here,
       which is also its priority among transitions leaving the same mode.
+    - `completions`: optional `ZenoCompletion`s, at most one per source mode: what a Zeno
+      execution in that mode does at its accumulation point (otherwise it stops with `ZENO`).
     - `example_args`: optional `args` pytree used only for the shape checks.
 
     `system.modes` and `system.transitions` are the tuples given, in order.
@@ -136,12 +159,16 @@ class HybridSystem(eqx.Module):
     transitions: tuple[Transition, ...]
     sources: tuple[int, ...] = eqx.field(static=True)
     targets: tuple[int, ...] = eqx.field(static=True)
+    completions: tuple[ZenoCompletion, ...]
+    completion_sources: tuple[int, ...] = eqx.field(static=True)
+    completion_targets: tuple[int, ...] = eqx.field(static=True)
 
     def __init__(
         self,
         modes: Sequence[Mode],
         transitions: Sequence[Transition] = (),
         *,
+        completions: Sequence[ZenoCompletion] = (),
         example_args: Any = None,
     ):
         modes = tuple(modes)
@@ -164,7 +191,7 @@ class HybridSystem(eqx.Module):
                 )
             index[m.name] = i
 
-        def resolve(k: int, tr: Transition, role: str) -> int:
+        def resolve(k: int, tr, role: str) -> int:
             ref = getattr(tr, role)
             if isinstance(ref, str):
                 if ref not in index:
@@ -184,6 +211,26 @@ class HybridSystem(eqx.Module):
         self.transitions = transitions
         self.sources = tuple(resolve(k, tr, "source") for k, tr in enumerate(transitions))
         self.targets = tuple(resolve(k, tr, "target") for k, tr in enumerate(transitions))
+        completions = tuple(completions)
+        for c, comp in enumerate(completions):
+            if not isinstance(comp, ZenoCompletion):
+                raise TypeError(
+                    f"completions[{c}] is {type(comp).__name__}, expected hybridjax.ZenoCompletion."
+                )
+        self.completions = completions
+        self.completion_sources = tuple(resolve(c, comp, "source") for c, comp in enumerate(completions))
+        self.completion_targets = tuple(resolve(c, comp, "target") for c, comp in enumerate(completions))
+        if len(set(self.completion_sources)) != len(completions):
+            raise ValueError("At most one ZenoCompletion per source mode.")
+        for c, comp in enumerate(completions):
+            if comp.reset is _identity_reset:
+                n_i = modes[self.completion_sources[c]].dim
+                n_j = modes[self.completion_targets[c]].dim
+                if n_i != n_j:
+                    raise ValueError(
+                        f"Completion {c} ({comp.label}): the default identity reset needs equal "
+                        f"dimensions ({n_i} != {n_j}); give a `reset`."
+                    )
         for k, tr in enumerate(transitions):
             if tr.reset is _identity_reset:
                 n_i, n_j = modes[self.sources[k]].dim, modes[self.targets[k]].dim
@@ -243,6 +290,10 @@ class HybridSystem(eqx.Module):
                 f"Transition index {k} out of range for {self.num_transitions} transitions."
             )
         return k
+
+    def completion_of(self, mode: int) -> int:
+        """Index of the ZenoCompletion leaving `mode`, or -1."""
+        return self.completion_sources.index(mode) if mode in self.completion_sources else -1
 
     def outgoing(self, mode: int) -> tuple[int, ...]:
         """Indices of the transitions leaving `mode`, in priority order."""

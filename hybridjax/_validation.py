@@ -80,3 +80,24 @@ def check_function_shapes(system, args: Any, dtype, strict: bool) -> None:
             if s == (m,)
             else f"returned shape {s}; expected ({m},), the target mode's dim.",
         )
+    for c, comp in enumerate(system.completions):
+        src = system.modes[system.completion_sources[c]]
+        tgt = system.modes[system.completion_targets[c]]
+        _check_one(
+            f"Completion {c} ({comp.label}): reset", comp.reset, src.dim, args, dtype, strict,
+            lambda s, m=tgt.dim: None
+            if s == (m,)
+            else f"returned shape {s}; expected ({m},), the target mode's dim.",
+        )
+
+
+def domain_sizes(system, args: Any, dtype) -> tuple[int, ...]:
+    """Number of domain components m_I of each mode (0 without a domain), by eval_shape."""
+    sizes = []
+    for mode in system.modes:
+        if mode.domain is None:
+            sizes.append(0)
+        else:
+            out = _abstract_shape(mode.domain, mode.dim, args, dtype)
+            sizes.append(1 if out.shape == () else int(out.shape[0]))
+    return tuple(sizes)

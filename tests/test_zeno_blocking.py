@@ -1,0 +1,196 @@
+"""Zeno detection and completion, blocking, chattering, and Monte Carlo of them."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+from hybridjax import examples
+
+from helpers import BALL, TIGHT
+
+
+def test_seed_ball_is_zeno_at_the_closed_form_time():
+    e = 1 / math.sqrt(2)
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 5.0, {"g": 9.8, "e": e},
+                      stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.ZENO
+    t_inf = examples.zeno_time(1.0, 9.8, e)  # sqrt(2 h0 / g) (1 + e) / (1 - e) = 2.6330...
+    assert abs(t_inf - 2.6330) < 1e-4
+    np.testing.assert_allclose(sol.zeno_time, t_inf, atol=1e-6)
+    np.testing.assert_allclose(sol.zeno_state, [0.0, 0.0], atol=1e-6)
+    # stopped well before grinding: a handful of events, at the last one
+    assert int(sol.num_events) <= 8
+    assert float(sol.final_time) == float(sol.event_times[int(sol.num_events) - 1])
+
+
+def test_vmapped_random_balls_zeno_times():
+    rng = np.random.default_rng(3)
+    e = rng.uniform(0.3, 0.85, 128)
+    h = rng.uniform(0.5, 1.5, 128)
+    run = jax.jit(jax.vmap(lambda h, e: hj.simulate(
+        BALL, jnp.stack([h, 0.0 * h]), "flight", 0.0, 20.0, {"g": 9.8, "e": e},
+        stepsize_controller=TIGHT, max_epochs=32)))
+    sol = run(jnp.asarray(h), jnp.asarray(e))
+    assert np.all(np.asarray(sol.status_code) == hj.STATUS_NAMES.index("ZENO"))
+    expected = np.sqrt(2 * h / 9.8) * (1 + e) / (1 - e)
+    np.testing.assert_allclose(sol.zeno_time, expected, atol=1e-5)
+
+
+def test_no_zeno_when_the_accumulation_point_is_after_t1():
+    # e = 0.8, h0 = 1: t_inf = 4.066 > 3
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, {"g": 9.8, "e": 0.8},
+                      stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.T1_REACHED and np.isinf(float(sol.zeno_time))
+
+
+def test_zeno_completion_brings_the_ball_to_rest():
+    rest = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
+    sys_ = hj.HybridSystem([BALL.modes[0], rest], BALL.transitions,
+                           completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])])
+    e = 1 / math.sqrt(2)
+    sol = hj.simulate(sys_, jnp.array([1.0, 0.0]), "flight", 0.0, 4.0, {"g": 9.8, "e": e},
+                      stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.T1_REACHED
+    assert sys_.mode_names[int(sol.final_mode)] == "rest"
+    assert abs(float(sol.final_state[0])) < 1e-6
+    n = int(sol.num_events)
+    assert int(sol.transitions[n - 1]) == sys_.num_transitions  # completion 0
+    np.testing.assert_allclose(sol.event_times[n - 1], examples.zeno_time(1.0, 9.8, e), atol=1e-6)
+    assert [ep.mode_name for ep in sol.hybrid_time_domain()][-1] == "rest"
+
+
+def test_completion_definition_errors():
+    rest = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
+    with pytest.raises(ValueError, match="identity reset needs equal dimensions"):
+        hj.HybridSystem([BALL.modes[0], rest], BALL.transitions,
+                        completions=[hj.ZenoCompletion("flight", "rest")])
+    with pytest.raises(hj.DefinitionError, match=r"Completion 0 .*reset returned shape \(2,\); expected \(1,\)"):
+        hj.HybridSystem([BALL.modes[0], rest], BALL.transitions,
+                        completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x)])
+
+
+def _line(domain=None, guard=None):
+    """x' = 1 in mode m (domain 1 - x >= 0 if given), optional guard 1 - x to mode 'done'."""
+    m = hj.Mode("m", lambda t, x, p: jnp.ones_like(x), dim=1, domain=domain)
+    done = hj.Mode("done", lambda t, x, p: jnp.zeros_like(x), dim=1)
+    trs = [] if guard is None else [hj.Transition("m", "done", guard=guard)]
+    return hj.HybridSystem([m, done], trs)
+
+
+def test_domain_exit_without_a_guard_blocks_at_the_exit():
+    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0])
+    sol = hj.simulate(sys_, jnp.array([0.25]), "m", 0.0, 2.0, stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.BLOCKED
+    np.testing.assert_allclose(sol.final_time, 0.75, atol=1e-8)
+    np.testing.assert_allclose(sol.final_state, [1.0], atol=1e-8)
+
+
+def test_domain_exit_covered_by_a_guard_transitions():
+    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0], guard=lambda t, x, p: 1.0 - x[0])
+    sol = hj.simulate(sys_, jnp.array([0.25]), "m", 0.0, 2.0, stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.T1_REACHED and int(sol.final_mode) == 1
+    np.testing.assert_allclose(sol.event_times[0], 0.75, atol=1e-8)
+
+
+def test_reset_outside_the_target_domain_blocks():
+    a = hj.Mode("a", lambda t, x, p: jnp.ones_like(x), dim=1)
+    b = hj.Mode("b", lambda t, x, p: jnp.zeros_like(x), dim=1, domain=lambda t, x, p: x[0])
+    sys_ = hj.HybridSystem([a, b], [hj.Transition("a", "b", guard=lambda t, x, p: 0.5 - x[0],
+                                                  reset=lambda t, x, p: x - 1.0)])
+    sol = hj.simulate(sys_, jnp.array([0.0]), "a", 0.0, 2.0, stepsize_controller=TIGHT)
+    assert sol.status == hj.Status.BLOCKED and int(sol.num_events) == 1
+    np.testing.assert_allclose(sol.final_time, 0.5, atol=1e-8)
+    np.testing.assert_allclose(sol.final_state, [-0.5], atol=1e-8)
+    assert int(sol.final_mode) == 1
+
+
+def test_initial_state_outside_the_domain_blocks_at_t0():
+    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0])
+    sol = hj.simulate(sys_, jnp.array([1.5]), "m", 0.0, 2.0)
+    assert sol.status == hj.Status.BLOCKED and float(sol.final_time) == 0.0
+
+
+def test_wilson_interval_published_value():
+    # Wilson (1927) 95% interval for 5 successes in 10 trials: (0.2366, 0.7634)
+    lo, hi = hj.wilson_interval(5, 10)
+    np.testing.assert_allclose([lo, hi], [0.2366, 0.7634], atol=1e-4)
+
+
+def _mc_inputs(n=96):
+    rng = np.random.default_rng(7)
+    h = rng.uniform(0.5, 1.5, n)
+    e = rng.uniform(0.3, 0.9, n)
+    return np.stack([h, 0 * h], 1), {"g": np.full(n, 9.8), "e": e}
+
+
+def test_monte_carlo_matches_closed_form_and_direct_vmap():
+    x0, args = _mc_inputs()
+    res = hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=4.0, chunk_size=40,
+                         progress=False, max_epochs=32)
+    assert res.n == 96 and res.chunks == 3
+    t_inf = np.sqrt(2 * x0[:, 0] / 9.8) * (1 + args["e"]) / (1 - args["e"])
+    zeno = res.per_execution["status"] == hj.STATUS_NAMES.index("ZENO")
+    clear = np.abs(t_inf - 4.0) > 0.2  # away from the horizon, Zeno iff t_inf <= t1
+    np.testing.assert_array_equal(zeno[clear], (t_inf <= 4.0)[clear])
+    np.testing.assert_allclose(res.per_execution["zeno_time"][zeno], t_inf[zeno], atol=1e-6)
+    k = res.status_counts["ZENO"]
+    frac, (lo, hi) = res.status_fractions["ZENO"]
+    assert frac == k / 96 and (lo, hi) == hj.wilson_interval(k, 96)
+    assert res.num_events["n"] == 96 and int(np.sum(res.event_histogram)) == 96
+
+
+_SHARDED = r"""
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+sys.path[:0] = [sys.argv[1], sys.argv[2]]
+import hybridjax as hj
+from test_zeno_blocking import _mc_inputs
+x0, args = _mc_inputs()
+res = hj.monte_carlo(hj.examples.bouncing_ball(), x0=x0, args=args, mode0="flight", t1=4.0,
+                     chunk_size=40, progress=False, max_epochs=32)
+print(json.dumps(dict(devices=res.devices, **{k: v.tolist() for k, v in res.per_execution.items()})))
+"""
+
+
+def test_monte_carlo_sharded_over_four_host_devices_matches_one_device():
+    x0, args = _mc_inputs()
+    one = hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=4.0, chunk_size=40,
+                         progress=False, max_epochs=32)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    here = os.path.dirname(__file__)
+    out = subprocess.run([sys.executable, "-c", _SHARDED, here, os.path.dirname(here)], capture_output=True, text=True,
+                         env=env, cwd=here, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    four = json.loads(out.stdout.strip().splitlines()[-1])
+    assert four["devices"] == 4
+    for k, v in one.per_execution.items():
+        np.testing.assert_allclose(np.asarray(four[k]), v, rtol=1e-12, atol=1e-12, err_msg=k)
+
+
+def test_chunked_arrays_and_sampler_paths_agree():
+    x0, args = _mc_inputs(48)
+
+    def sampler(key, m):
+        # ignores the key: returns the same fixed rows as the arrays path
+        return jnp.asarray(x0[:m]), jax.tree_util.tree_map(lambda v: jnp.asarray(v[:m]), args)
+
+    a = hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=4.0, chunk_size=48,
+                       progress=False, max_epochs=32)
+    b = hj.monte_carlo(BALL, sampler, 48, mode0="flight", t1=4.0, chunk_size=48,
+                       progress=False, max_epochs=32, keep="summary")
+    assert b.per_execution is None and a.status_counts == b.status_counts
+    assert a.zeno_time["mean"] == pytest.approx(b.zeno_time["mean"], rel=1e-12)
+    with pytest.raises(ValueError, match="either a sampler"):
+        hj.monte_carlo(BALL, t1=1.0)
+    assert diffrax is not None
