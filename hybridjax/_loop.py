@@ -360,9 +360,16 @@ class Loop:
 
             tk = jax.vmap(root)(jnp.arange(kern.num_watch), a, b)
             tk = jnp.where(has, tk, jnp.inf)
-            t_min = jnp.min(tk)
-            cand = has & (tk <= t_min + tol)
+            first = jnp.argmin(tk)
+            t_min = tk[first]
+            # Also "reached at the same instant": a guard that is <= 0 at t_min but was > 0 at
+            # the start of the earliest bracket (its window may be narrower than the samples).
+            t_at = jnp.where(jnp.any(has), t_min, b[first])
+            g_at = kern.guards(mode, t_at, interp_sg.evaluate(t_at), args_sg)
+            g_from = kern.guards(mode, a[first], interp_sg.evaluate(a[first]), args_sg)
+            cand = has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & jnp.any(has))
             k = jnp.argmax(cand).astype(jnp.int32)
+            tk = jnp.where(cand & ~has, t_min, tk)
             return jnp.where(jnp.any(has), tk[k], sg(t_next)), k, jnp.sum(cand) > 1
 
         def no_event(_):

@@ -244,3 +244,41 @@ def pendulum_wall() -> HybridSystem:
     hit = Transition("swing", "swing", guard=lambda t, x, p: p["theta_w"] - x[0],
                      reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]), name="wall")
     return HybridSystem([swing], [hit])
+
+
+# ----------------------------------------------------------------------------- truncation
+
+
+def truncated_ball() -> HybridSystem:
+    r"""The bouncing ball with Zeno truncated (the chapter's second remedy): it stops rebounding
+    when it lands slower than `v_min`.
+
+    Flight (h, v) as `bouncing_ball`; "settle" (listed first, so it wins a tie) fires on landing
+    slower than v_min: guard max(h, -v - v_min) <= 0 iff h <= 0 and |v| <= v_min; it resets to
+    the 1-D "rest" mode (height, flow 0). Otherwise "bounce" (guard h) rebounds with -e v.
+    Finitely many transitions: impact speeds e^k w fall below v_min after
+    ceil(log(v_min / w) / log(e)) bounces. `args = {"g", "e", "v_min"}`. Simulate it with
+    `zeno=False`: until the truncation acts its epochs shrink geometrically, which the Zeno
+    detector would (rightly, by its test) extrapolate.
+    """
+    ball = bouncing_ball()
+    rest = Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
+    settle = Transition(
+        "flight", "rest",
+        guard=lambda t, x, p: jnp.maximum(x[0], -x[1] - p["v_min"]),
+        reset=lambda t, x, p: jnp.array([0.0 * x[0]]),
+        name="settle",
+    )
+    return HybridSystem([ball.modes[0], rest], [settle, ball.transitions[0]])
+
+
+def truncated_ball_closed_form(h0: float, g: float, e: float, v_min: float) -> dict:
+    """Bounce times and the settling time of `truncated_ball` dropped from rest at h0."""
+    w = math.sqrt(2 * g * h0)
+    t = math.sqrt(2 * h0 / g)
+    bounces = []
+    while w > v_min:
+        bounces.append(t)
+        w *= e
+        t += 2 * w / g
+    return dict(bounce_times=np.array(bounces), settle_time=t)

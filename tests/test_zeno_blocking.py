@@ -194,3 +194,17 @@ def test_chunked_arrays_and_sampler_paths_agree():
     with pytest.raises(ValueError, match="either a sampler"):
         hj.monte_carlo(BALL, t1=1.0)
     assert diffrax is not None
+
+
+def test_truncation_example_settles_after_finitely_many_bounces():
+    p = {"g": 9.8, "e": 1 / math.sqrt(2), "v_min": 0.05}
+    sys_ = examples.truncated_ball()
+    sol = hj.simulate(sys_, jnp.array([1.0, 0.0]), "flight", 0.0, 4.0, p, stepsize_controller=TIGHT,
+                      zeno=False)
+    ref = examples.truncated_ball_closed_form(1.0, 9.8, p["e"], p["v_min"])
+    n = len(ref["bounce_times"])
+    assert sol.status == hj.Status.T1_REACHED and sys_.mode_names[int(sol.final_mode)] == "rest"
+    assert int(sol.num_events) == n + 1
+    np.testing.assert_allclose(sol.event_times[:n], ref["bounce_times"], atol=1e-8)
+    np.testing.assert_allclose(sol.event_times[n], ref["settle_time"], atol=1e-8)
+    assert int(sol.transitions[n]) == 0  # "settle"
