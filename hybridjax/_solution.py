@@ -1,5 +1,6 @@
 """The result of `simulate`: the hybrid time domain of an execution and the states on it."""
 
+import html
 from typing import Any, NamedTuple
 
 import diffrax
@@ -166,6 +167,35 @@ class Solution(eqx.Module):
         )
         x = jnp.where(same, start_x, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
+
+    def _repr_html_(self) -> str:
+        esc = html.escape
+        if np.ndim(self.num_events) != 0:
+            codes = np.asarray(self.status._value).ravel()
+            counts = np.bincount(codes, minlength=len(STATUS_NAMES))
+            rows = "".join(
+                f"<tr><td>{name}</td><td>{c}</td><td>{c / codes.size:.4f}</td></tr>"
+                for name, c in zip(STATUS_NAMES, counts, strict=True) if c
+            )
+            return (f"<div><b>Solution</b>: batch {np.shape(self.num_events)}, mean events "
+                    f"{float(np.mean(self.num_events)):.2f}<table><tr><th>status</th><th>count</th>"
+                    f"<th>fraction</th></tr>{rows}</table></div>")
+        sys_ = self.system
+        n = int(self.num_events)
+        labels = [tr.label for tr in sys_.transitions] + [c.label for c in sys_.completions]
+        rows = "".join(
+            f"<tr><td>{i}</td><td>{float(self.event_times[i]):.10g}</td>"
+            f"<td>{esc(labels[int(self.transitions[i])])}</td>"
+            f"<td>{esc(sys_.mode_names[int(self.epoch_modes[i])])} &rarr; "
+            f"{esc(sys_.mode_names[int(self.epoch_modes[i + 1])])}</td>"
+            f"<td>{'simultaneous ' if bool(self.simultaneous[i]) else ''}"
+            f"{'grazing' if bool(self.grazing[i]) else ''}</td></tr>"
+            for i in range(n)
+        )
+        return (f"<div><b>Solution</b>: {self.status_name}, {n} events, final time "
+                f"{float(self.final_time):.10g} in mode '{esc(sys_.mode_names[int(self.final_mode)])}'"
+                "<table><tr><th>event</th><th>time</th><th>transition</th><th>modes</th>"
+                f"<th>flags</th></tr>{rows}</table></div>")
 
     def __repr__(self) -> str:
         if np.ndim(self.num_events) != 0:

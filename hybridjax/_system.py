@@ -6,6 +6,7 @@ Gamma (directed edges), domains D_I = {a_I >= 0}, flows F_I, guards G_IJ = {g_IJ
 resets R_IJ : G_IJ -> D_J.
 """
 
+import html
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -303,6 +304,32 @@ class HybridSystem(eqx.Module):
         """Run the shape checks with these `args` (raises ValueError naming the culprit)."""
         check_function_shapes(
             self, args, dtype=jnp.result_type(float) if dtype is None else dtype, strict=True
+        )
+
+    def _repr_html_(self) -> str:
+        esc = html.escape
+        modes = "".join(
+            f"<tr><td>{i}</td><td>{esc(m.name)}</td><td>{m.dim}</td>"
+            f"<td>{'yes' if m.domain is not None else ''}</td>"
+            f"<td>{', '.join(esc(self.transitions[k].label) for k in self.outgoing(i))}</td></tr>"
+            for i, m in enumerate(self.modes)
+        )
+        trans = "".join(
+            f"<tr><td>{k}</td><td>{esc(tr.label)}</td><td>{esc(self.modes[self.sources[k]].name)}</td>"
+            f"<td>{esc(self.modes[self.targets[k]].name)}</td></tr>"
+            for k, tr in enumerate(self.transitions)
+        )
+        comps = "".join(
+            f"<tr><td>zeno {c}</td><td>{esc(comp.label)}</td>"
+            f"<td>{esc(self.modes[self.completion_sources[c]].name)}</td>"
+            f"<td>{esc(self.modes[self.completion_targets[c]].name)}</td></tr>"
+            for c, comp in enumerate(self.completions)
+        )
+        return (
+            f"<div><b>HybridSystem</b>: {self.num_modes} modes, {self.num_transitions} transitions"
+            "<table><tr><th>mode</th><th>name</th><th>dim</th><th>domain</th><th>leaving</th></tr>"
+            f"{modes}</table><table><tr><th>transition</th><th>name</th><th>source</th>"
+            f"<th>target</th></tr>{trans}{comps}</table></div>"
         )
 
     def __repr__(self) -> str:
