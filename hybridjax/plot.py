@@ -82,7 +82,8 @@ def trajectory(sol, component: int = 0, ax=None, points_per_epoch: int = 60):
     ax = _ax(ax)
     seen = set()
     for ep, ts, xs in _epoch_grid(sol, points_per_epoch):
-        label = sol.system.mode_names[ep.mode] if ep.mode not in seen else "_" + sol.system.mode_names[ep.mode]
+        name = sol.system.mode_names[ep.mode]
+        label = name if ep.mode not in seen else "_" + name
         seen.add(ep.mode)
         ax.plot(ts, xs[:, component], color=_colour(ep.mode), lw=1.5, label=label)
     n = int(sol.num_events)
@@ -125,7 +126,8 @@ def phase(sol, i: int = 0, j: int = 1, ax=None, points_per_epoch: int = 80, guar
                 continue
             pts = np.zeros((gx.size, 2))
             pts[:, i], pts[:, j] = gx.ravel(), gy.ravel()
-            g = jax.vmap(lambda x, tr=tr: jnp.asarray(tr.guard(sol.final_time, x, sol.args)))(jnp.asarray(pts))
+            guard = jax.vmap(lambda x, tr=tr: jnp.asarray(tr.guard(sol.final_time, x, sol.args)))
+            g = guard(jnp.asarray(pts))
             ax.contour(gx, gy, np.asarray(g).reshape(gx.shape), levels=[0.0], colors="k",
                        linestyles="--", linewidths=0.8)
     ax.set_xlabel(f"x[{i}]")
