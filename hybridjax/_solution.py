@@ -142,7 +142,9 @@ class Solution(eqx.Module):
         state of the last transition at that instant), and integrates that epoch's flow from
         its initial state x(t_i^+) to t with diffrax (default Tsit5, rtol = atol = 1e-10).
         Differentiable; `jax.vmap` over `t` for many times. Times outside
-        [t0, final_time] return `inf`.
+        [t0, final_time], and times inside the accumulating tail of a completed Zeno execution
+        (the epoch that ends in a `ZenoCompletion` jump, which stands for infinitely many
+        unsimulated bounces), return `inf` and mode -1.
         """
         self._check_single("evaluate")
         t = jnp.asarray(t, self.final_time.dtype)
@@ -157,7 +159,10 @@ class Solution(eqx.Module):
         if stepsize_controller is None:
             tol = 1e-10 if start_x.dtype == jnp.float64 else 1e-6
             stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
-        inside = (t >= self.t0) & (t <= self.final_time)
+        # The epoch that ends in a Zeno completion stands for infinitely many epochs that were
+        # not simulated (the accumulating tail); re-integrating its flow would not be the execution.
+        tail = (i < self.num_events) & (self.transitions[i] >= self.system.num_transitions)
+        inside = (t >= self.t0) & (t <= self.final_time) & ~tail
         t_end = jnp.where(inside, jnp.maximum(t, start_t), start_t)
         same = t_end == start_t
         sol = diffrax.diffeqsolve(

@@ -59,8 +59,10 @@ def hybrid_time_domain(sol, ax=None):
 def _epoch_grid(sol, points_per_epoch: int):
     """Times inside each positive-length epoch, and the (right-continuous) states there."""
     segments = []
+    K = sol.system.num_transitions
     for ep in sol.hybrid_time_domain():
-        if ep.length <= 0:
+        zeno_tail = ep.index < int(sol.num_events) and int(sol.transitions[ep.index]) >= K
+        if ep.length <= 0 or zeno_tail:
             continue
         ts = np.linspace(ep.start, ep.end, points_per_epoch)
         ts[-1] = ep.end - 1e-12 * max(1.0, abs(ep.end)) if ep.index < int(sol.num_events) else ep.end
@@ -92,6 +94,11 @@ def trajectory(sol, component: int = 0, ax=None, points_per_epoch: int = 60):
         before = np.asarray(sol.states_before[:n, component])
         after = np.asarray(sol.states_after[:n, component])
         ax.plot(t_ev, before, "kx", ms=5, label="events")
+        K = sol.system.num_transitions
+        for i in range(1, n):
+            if int(sol.transitions[i]) >= K:  # the Zeno tail: accumulating events, not drawn
+                ax.plot([t_ev[i - 1], t_ev[i]], [after[i - 1], before[i]], color="0.5", lw=1.0,
+                        ls="--", label="_zeno_tail")
         for t, b, a in zip(t_ev, before, after, strict=True):
             if np.isfinite(a) and a != b:
                 ax.plot([t, t], [b, a], color="k", lw=0.8, ls=":", label="_reset")

@@ -66,6 +66,12 @@ def test_zeno_completion_brings_the_ball_to_rest():
     assert int(sol.transitions[n - 1]) == sys_.num_transitions  # completion 0
     np.testing.assert_allclose(sol.event_times[n - 1], examples.zeno_time(1.0, 9.8, e), atol=1e-6)
     assert [ep.mode_name for ep in sol.hybrid_time_domain()][-1] == "rest"
+    # dense output: the accumulating tail (last bounce to t_inf) is not re-integrated
+    t_last_bounce = float(sol.event_times[n - 2])
+    x_tail, m_tail = sol.evaluate(0.5 * (t_last_bounce + float(sol.zeno_time)))
+    assert np.all(np.isinf(np.asarray(x_tail))) and int(m_tail) == -1
+    x_rest, m_rest = sol.evaluate(3.5)
+    assert int(m_rest) == 1 and abs(float(x_rest[0])) < 1e-6
 
 
 def test_completion_definition_errors():

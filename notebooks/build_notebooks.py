@@ -1,0 +1,206 @@
+"""Build the notebooks from their cells and execute them, saving outputs (plots) in the files.
+
+    python notebooks/build_notebooks.py          # rewrites notebooks/*.ipynb, executed
+"""
+
+import base64
+import sys
+import time
+from pathlib import Path
+
+import nbformat
+from nbclient import NotebookClient
+
+HERE = Path(__file__).parent
+SETUP = """import jax, jax.numpy as jnp, numpy as np, diffrax
+import matplotlib.pyplot as plt
+import hybridjax as hj, hybridjax.plot as hjp
+from hybridjax import examples
+jax.config.update("jax_enable_x64", True)
+%matplotlib inline"""
+
+NOTEBOOKS = {
+    "01_defining_and_simulating": [
+        ("md", """# Defining and simulating hybrid systems
+
+A hybrid dynamical system is a tuple $\\mathcal{H} = (\\mathcal{J}, \\Gamma, \\mathcal{D}, \\mathcal{F}, \\mathcal{G}, \\mathcal{R})$:
+modes $\\mathcal{J}$, transitions $\\Gamma$, domains $D_I$, flows $\\dot x = F_I(t, x)$, guard sets
+$G_{I,J} = \\{g_{I,J}(t, x) \\le 0\\}$ and resets $x^+ = R_{I,J}(t, x^-)$. In hybridjax a `Mode` holds a flow (and
+optionally a domain), a `Transition` holds a guard and a reset, and a `HybridSystem` collects them."""),
+        ("code", SETUP),
+        ("md", """## The bouncing ball
+
+One mode, `flight`, with $F(h, v) = (v, -g)$; one transition back to itself with guard $g(h, v) = h$ and reset
+$(h, v) \\mapsto (h, -e v)$. Dropped from $h_0$ at rest, the impacts happen at
+$t_k = \\sqrt{2 h_0 / g}\\,(1 + 2e + \\dots + 2e^{k-1})$."""),
+        ("code", """flight = hj.Mode("flight", flow=lambda t, x, args: jnp.array([x[1], -args["g"]]), dim=2)
+bounce = hj.Transition("flight", "flight", guard=lambda t, x, args: x[0],
+                       reset=lambda t, x, args: jnp.array([x[0], -args["e"] * x[1]]), name="bounce")
+ball = hj.HybridSystem(modes=[flight], transitions=[bounce])
+ball"""),
+        ("code", """args = {"g": 9.8, "e": 0.8}
+sol = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, args,
+                  stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10))
+ref = examples.bouncing_ball_closed_form(1.0, 0.0, 9.8, 0.8, 3.0)
+n = int(sol.num_events)
+print("impact times    ", np.asarray(sol.event_times[:n]))
+print("max error vs closed form", np.max(np.abs(np.asarray(sol.event_times[:n]) - ref["event_times"])))
+sol"""),
+        ("md", "The execution lives on a *hybrid time domain*: epochs $[t_i, t_{i+1}]$, each in one mode."),
+        ("code", """fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+hjp.trajectory(sol, 0, a1); hjp.phase(sol, 0, 1, a2); plt.show()"""),
+        ("md", """## The thermostat (practice problem 2)
+
+Modes off / heat / cool; $\\dot T = a (T_{amb} - T) + P_{mode}$. Heat turns on below $s - 4$ and off above $s - 2$;
+cooling turns on above $s + 4$ and off below $s + 2$. Each mode's domain is the band it lives in, and the guards cover
+the parts of the domains' boundaries the flow leaves through, so the system is nonblocking."""),
+        ("code", """thermo = examples.thermostat()
+p = dict(a=0.1, T_amb=5.0, P_heat=2.5, P_cool=2.0, s=20.0)
+th = hj.simulate(thermo, jnp.array([19.0]), "off", 0.0, 30.0, p)
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+hjp.trajectory(th, 0, a1); hjp.hybrid_time_domain(th, a2); plt.show()
+thermo"""),
+        ("md", """## A reset into a guard: the ball thrown at a ceiling
+
+Plastic impact zeroes the velocity at the ceiling, in the `contact` mode, where the lift-off guard already holds:
+the contact epoch has zero length (the chapter's Figure 8, epoch $T_3$)."""),
+        ("code", """ceiling = examples.ceiling_ball()
+cs = hj.simulate(ceiling, jnp.array([0.0, 7.0]), "flight", 0.0, 1.0, {"g": 9.8, "H": 2.0})
+print(cs.hybrid_time_domain())
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+hjp.hybrid_time_domain(cs, a1); hjp.transition_graph(ceiling, cs, a2); plt.show()"""),
+        ("md", "## A thousand executions at once\n\n`jax.vmap` runs a batch; `jax.jit` compiles it once."),
+        ("code", """run = jax.jit(jax.vmap(lambda h, v: hj.simulate(ball, jnp.stack([h, v]), "flight", 0.0, 2.5, args,
+                                                  saveat=jnp.linspace(0, 2.5, 120), max_epochs=32)))
+rng = np.random.default_rng(0)
+batch = run(jnp.asarray(rng.uniform(0.5, 1.5, 1000)), jnp.asarray(rng.uniform(-1, 1, 1000)))
+print(batch)
+hjp.batch(batch, 0, alpha=0.05, max_lines=300); plt.show()"""),
+    ],
+    "02_gradients_and_saltation": [
+        ("md", """# Gradients and saltation matrices
+
+Every number `simulate` returns is differentiable. Event times follow the implicit function theorem,
+$\\frac{dt^*}{d\\theta} = -\\frac{\\partial g/\\partial\\theta}{D_t g + D_x g\\,F(t^*, x^*)}$, and AD through the
+epoch loop composes flows and resets into the *saltation matrix*
+$\\Xi = D_xR + \\frac{(F_J - D_xR\\,F_I - D_tR)\\,D_xg}{D_tg + D_xg\\,F_I}$."""),
+        ("code", SETUP),
+        ("md", "## Event-time sensitivities of the bouncing ball\n\n$t_1 = \\sqrt{2h_0/g}$, so $dt_1/dh_0 = 1/\\sqrt{2 g h_0}$ and $dt_1/dg = -t_1 / (2g)$."),
+        ("code", """ball = examples.bouncing_ball()
+ctrl = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+def first_impact(h0, g):
+    return hj.simulate(ball, jnp.stack([h0, 0.0]), "flight", 0.0, 2.0, {"g": g, "e": 0.8},
+                       stepsize_controller=ctrl).event_times[0]
+dh, dg = jax.grad(first_impact, argnums=(0, 1))(1.0, 9.8)
+t1 = np.sqrt(2 / 9.8)
+print(f"dt1/dh0 = {dh:.12f}   closed form {1 / np.sqrt(2 * 9.8):.12f}")
+print(f"dt1/dg  = {dg:.12f}   closed form {-t1 / (2 * 9.8):.12f}")"""),
+        ("md", "## The saltation matrix\n\nFor the ball, $\\Xi = \\begin{pmatrix} -e & 0 \\\\ -(1+e) g / v & -e \\end{pmatrix}$ at pre-impact velocity $v$."),
+        ("code", """print(hj.saltation_matrix(ball, 0, 0.45, jnp.array([0.0, -4.0]), {"g": 9.8, "e": 0.8}))
+print(np.array([[-0.8, 0], [-(1.8) * 9.8 / -4.0, -0.8]]))"""),
+        ("md", """## AD against the variational equations
+
+`variational_jacobian` integrates $\\dot\\Phi = D_xF\\,\\Phi$ in each epoch with diffrax and multiplies in the saltation
+matrices: an independent check of `jax.jacfwd(simulate)`. Here on a nonlinear pendulum hitting a wall."""),
+        ("code", """pend = examples.pendulum_wall(); pp = {"theta_w": 0.2, "e": 0.7}
+x0 = jnp.array([-0.5, 0.8])
+ps = hj.simulate(pend, x0, "swing", 0.0, 9.0, pp, stepsize_controller=ctrl)
+J_ad = jax.jacfwd(lambda x: hj.simulate(pend, x, "swing", 0.0, 9.0, pp, stepsize_controller=ctrl,
+                                        adjoint=diffrax.ForwardMode()).final_state)(x0)
+J_var = hj.variational_jacobian(ps).final_state
+print(int(ps.num_events), "impacts"); print(np.asarray(J_ad)); print(J_var)
+print("max difference", np.max(np.abs(np.asarray(J_ad) - J_var)))
+hjp.phase(ps, 0, 1); plt.show()"""),
+        ("md", """## Zero-length epochs chain their sensitivities
+
+At the ceiling the lift-off happens at the impact instant, so its time sensitivity is the impact's. With
+$z_0 = 0, v_0 = 7, H = 2, g = 9.8, T = 1$: $\\partial v(T)/\\partial v_0 = 1 - \\sqrt 5$."""),
+        ("code", """ceiling = examples.ceiling_ball(); pc = {"g": 9.8, "H": 2.0}
+J = jax.jacrev(lambda x: hj.simulate(ceiling, x, "flight", 0.0, 1.0, pc, stepsize_controller=ctrl).final_state)(jnp.array([0.0, 7.0]))
+print(J[1, 1], 1 - np.sqrt(5))"""),
+        ("md", """## A periodic orbit: the rimless wheel
+
+A fixed point of the return map through heel strike (optimistix Newton), and its Floquet multipliers by AD and by
+saltation composition. Closed form: the nontrivial multiplier is $\\cos^2(2\\alpha)$."""),
+        ("code", """alpha, gamma = 0.3, 0.08
+ref = examples.rimless_wheel_closed_form(alpha, gamma)
+orbit = hj.periodic_orbit(examples.rimless_wheel(), 0, ref["state"] * np.array([1.0, 1.2]),
+                          {"alpha": alpha, "gamma": gamma})
+print("fixed point", orbit.state, "closed form", ref["state"])
+print("multipliers (AD)        ", orbit.multipliers_ad.real)
+print("multipliers (saltation) ", orbit.multipliers_saltation.real)
+print("cos^2(2 alpha)          ", ref["multiplier"])"""),
+    ],
+    "03_zeno_and_blocking": [
+        ("md", """# Zeno, blocking and Monte Carlo
+
+The chapter's ball ($h_0 = 1$, $g = 9.8$, $e = 1/\\sqrt 2$) bounces infinitely often before
+$t_\\infty = \\sqrt{2h_0/g}\\,\\frac{1+e}{1-e} \\approx 2.633$ s (practice problem 3: $|T_{i+1}| = e\\,|T_i|$).
+hybridjax detects the geometric accumulation, stops with `ZENO` and extrapolates the limit."""),
+        ("code", SETUP),
+        ("code", """ball = examples.bouncing_ball(); e = 1 / np.sqrt(2)
+zs = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, 5.0, {"g": 9.8, "e": e})
+print(zs.status_name, "after", int(zs.num_events), "bounces; zeno_time", float(zs.zeno_time),
+      "closed form", examples.zeno_time(1.0, 9.8, e), "limit state", np.asarray(zs.zeno_state))"""),
+        ("md", "## Completion: the ball comes to rest\n\nA `ZenoCompletion` jumps to $(t_\\infty, x_\\infty)$ and continues in a `rest` mode."),
+        ("code", """rest = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
+completed = hj.HybridSystem([ball.modes[0], rest], ball.transitions,
+                            completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])])
+cs = hj.simulate(completed, jnp.array([1.0, 0.0]), "flight", 0.0, 4.0, {"g": 9.8, "e": e})
+print(cs)
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+hjp.trajectory(cs, 0, a1); hjp.hybrid_time_domain(cs, a2); plt.show()"""),
+        ("md", "## Truncation: stop rebounding below a speed\n\nThe chapter's second remedy changes the model: landing slower than $v_{min}$ settles the ball. Finitely many transitions."),
+        ("code", """trunc = examples.truncated_ball(); pt = {"g": 9.8, "e": e, "v_min": 0.05}
+ts_ = hj.simulate(trunc, jnp.array([1.0, 0.0]), "flight", 0.0, 4.0, pt, zeno=False)
+ref = examples.truncated_ball_closed_form(1.0, 9.8, e, 0.05)
+print(ts_, "settles at", float(ts_.event_times[int(ts_.num_events) - 1]), "closed form", ref["settle_time"])"""),
+        ("md", "## Blocking\n\nLeaving a mode's domain $\\{a \\ge 0\\}$ where no guard fires ends the execution with `BLOCKED` (the system is not nonblocking there)."),
+        ("code", """m = hj.Mode("m", lambda t, x, p: jnp.ones_like(x), dim=1, domain=lambda t, x, p: 1.0 - x[0])
+bs = hj.simulate(hj.HybridSystem([m]), jnp.array([0.25]), "m", 0.0, 2.0)
+print(bs.status_name, "at t =", float(bs.final_time), "x =", np.asarray(bs.final_state))"""),
+        ("md", """## Monte Carlo: how often is the ball Zeno before $t_1 = 4$?
+
+With $h_0 \\sim U(0.5, 1.5)$ and $e \\sim U(0.3, 0.9)$, an execution is Zeno before $t_1$ exactly when
+$\\sqrt{2h_0/g}(1+e)/(1-e) \\le t_1$. `monte_carlo` runs chunks sharded across the devices and reports the fraction
+with a 95% Wilson interval."""),
+        ("code", """def sampler(key, m):
+    k1, k2 = jax.random.split(key)
+    e = jax.random.uniform(k1, (m,), minval=0.3, maxval=0.9)
+    h = jax.random.uniform(k2, (m,), minval=0.5, maxval=1.5)
+    return jnp.stack([h, 0 * h], 1), {"g": jnp.full((m,), 9.8), "e": e}
+res = hj.monte_carlo(ball, sampler, 20_000, mode0="flight", t1=4.0, chunk_size=10_000, max_epochs=32, progress=False)
+print(res.table())
+x0, a = sampler(jax.random.fold_in(jax.random.PRNGKey(0), 0), 10_000)
+x1, b = sampler(jax.random.fold_in(jax.random.PRNGKey(0), 1), 10_000)
+h = np.r_[x0[:, 0], x1[:, 0]]; ee = np.r_[a["e"], b["e"]]
+print("closed-form Zeno fraction of the same samples:", np.mean(np.sqrt(2 * h / 9.8) * (1 + ee) / (1 - ee) <= 4.0))
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+hjp.status_histogram(res, a1); hjp.zeno_histogram(res, a2); plt.show()"""),
+    ],
+}
+
+
+def build(name: str, cells, execute: bool = True) -> float:
+    nb = nbformat.v4.new_notebook()
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nb.cells = [nbformat.v4.new_markdown_cell(src) if kind == "md" else nbformat.v4.new_code_cell(src)
+                for kind, src in cells]
+    t = time.perf_counter()
+    if execute:
+        NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
+    nbformat.write(nb, HERE / f"{name}.ipynb")
+    elapsed = time.perf_counter() - t
+    for cell in nb.cells:  # the first figure becomes the README's thumbnail
+        for out in cell.get("outputs", []):
+            if "image/png" in out.get("data", {}):
+                (HERE / "thumbnails").mkdir(exist_ok=True)
+                (HERE / "thumbnails" / f"{name}.png").write_bytes(base64.b64decode(out["data"]["image/png"]))
+                return elapsed
+    return elapsed
+
+
+if __name__ == "__main__":
+    names = sys.argv[1:] or list(NOTEBOOKS)
+    for name in names:
+        print(f"{name}: executed in {build(name, NOTEBOOKS[name]):.1f} s")
