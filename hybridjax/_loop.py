@@ -390,8 +390,13 @@ class Loop:
         if self.save_ts.shape[0]:
             t_end = jnp.where(any_event, t_star, sg(t_next))
             mask = keep & active & (self.save_ts > sg(t)) & (self.save_ts <= t_end)
-            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
-            ys = jnp.where(mask[:, None], vals, ys)
+
+            def save(ys):
+                vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
+                return jnp.where(mask[:, None], vals, ys)
+
+            # Most steps of most executions contain no save time: skip the interpolation then.
+            ys = lax.cond(eqxi.unvmap_any(mask), save, lambda ys: ys, ys)
             saved_modes = jnp.where(mask, mode, saved_modes)
 
         counted = eqx.tree_at(
