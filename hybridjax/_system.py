@@ -192,18 +192,18 @@ class HybridSystem(eqx.Module):
                 )
             index[m.name] = i
 
-        def resolve(k: int, tr, role: str) -> int:
+        def resolve(k: int, tr, role: str, kind: str = "Transition") -> int:
             ref = getattr(tr, role)
             if isinstance(ref, str):
                 if ref not in index:
                     raise ValueError(
-                        f"Transition {k} ({tr.label}): unknown {role} mode '{ref}'; "
+                        f"{kind} {k} ({tr.label}): unknown {role} mode '{ref}'; "
                         f"known modes: {sorted(index)}."
                     )
                 return index[ref]
             if not 0 <= int(ref) < len(modes):
                 raise ValueError(
-                    f"Transition {k} ({tr.label}): {role} index {ref} out of range "
+                    f"{kind} {k} ({tr.label}): {role} index {ref} out of range "
                     f"for {len(modes)} modes."
                 )
             return int(ref)
@@ -219,28 +219,21 @@ class HybridSystem(eqx.Module):
                     f"completions[{c}] is {type(comp).__name__}, expected hybridjax.ZenoCompletion."
                 )
         self.completions = completions
-        self.completion_sources = tuple(resolve(c, comp, "source") for c, comp in enumerate(completions))
-        self.completion_targets = tuple(resolve(c, comp, "target") for c, comp in enumerate(completions))
+        self.completion_sources = tuple(
+            resolve(c, comp, "source", "Completion") for c, comp in enumerate(completions)
+        )
+        self.completion_targets = tuple(
+            resolve(c, comp, "target", "Completion") for c, comp in enumerate(completions)
+        )
         if len(set(self.completion_sources)) != len(completions):
             raise ValueError("At most one ZenoCompletion per source mode.")
-        for c, comp in enumerate(completions):
-            if comp.reset is _identity_reset:
-                n_i = modes[self.completion_sources[c]].dim
-                n_j = modes[self.completion_targets[c]].dim
-                if n_i != n_j:
-                    raise ValueError(
-                        f"Completion {c} ({comp.label}): the default identity reset needs equal "
-                        f"dimensions ({n_i} != {n_j}); give a `reset`."
-                    )
-        for k, tr in enumerate(transitions):
-            if tr.reset is _identity_reset:
-                n_i, n_j = modes[self.sources[k]].dim, modes[self.targets[k]].dim
-                if n_i != n_j:
-                    raise ValueError(
-                        f"Transition {k} ({tr.label}): the default identity reset needs equal "
-                        f"dimensions, but source has dim {n_i} and target dim {n_j}; "
-                        "give a `reset`."
-                    )
+        for name, reset, i, j in self.jumps():
+            n_i, n_j = modes[i].dim, modes[j].dim
+            if reset is _identity_reset and n_i != n_j:
+                raise ValueError(
+                    f"{name}: the default identity reset needs equal dimensions, but source "
+                    f"has dim {n_i} and target dim {n_j}; give a `reset`."
+                )
         check_function_shapes(self, example_args, dtype=jnp.result_type(float), strict=False)
 
     # ------------------------------------------------------------------ lookups
@@ -291,6 +284,14 @@ class HybridSystem(eqx.Module):
                 f"Transition index {k} out of range for {self.num_transitions} transitions."
             )
         return k
+
+    def jumps(self):
+        """(name, reset, source, target) of every transition, then every Zeno completion."""
+        for k, tr in enumerate(self.transitions):
+            yield f"Transition {k} ({tr.label})", tr.reset, self.sources[k], self.targets[k]
+        for c, comp in enumerate(self.completions):
+            yield (f"Completion {c} ({comp.label})", comp.reset, self.completion_sources[c],
+                   self.completion_targets[c])
 
     def completion_of(self, mode: int) -> int:
         """Index of the ZenoCompletion leaving `mode`, or -1."""

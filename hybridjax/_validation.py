@@ -69,27 +69,19 @@ def check_function_shapes(system, args: Any, dtype, strict: bool) -> None:
             )
     for k, tr in enumerate(system.transitions):
         src, tgt = system.modes[system.sources[k]], system.modes[system.targets[k]]
-        name = f"Transition {k} ({tr.label}, '{src.name}' -> '{tgt.name}')"
         _check_one(
-            f"{name}: guard", tr.guard, src.dim, args, dtype, strict,
+            f"Transition {k} ({tr.label}, '{src.name}' -> '{tgt.name}'): guard",
+            tr.guard, src.dim, args, dtype, strict,
             lambda s: None if s == () else f"returned shape {s}; a guard must return a scalar.",
         )
+    for name, reset, i, j in system.jumps():
+        src, tgt = system.modes[i], system.modes[j]
         _check_one(
-            f"{name}: reset", tr.reset, src.dim, args, dtype, strict,
+            f"{name[:-1]}, '{src.name}' -> '{tgt.name}'): reset", reset, src.dim, args, dtype, strict,
             lambda s, m=tgt.dim: None
             if s == (m,)
             else f"returned shape {s}; expected ({m},), the target mode's dim.",
         )
-    for c, comp in enumerate(system.completions):
-        src = system.modes[system.completion_sources[c]]
-        tgt = system.modes[system.completion_targets[c]]
-        _check_one(
-            f"Completion {c} ({comp.label}): reset", comp.reset, src.dim, args, dtype, strict,
-            lambda s, m=tgt.dim: None
-            if s == (m,)
-            else f"returned shape {s}; expected ({m},), the target mode's dim.",
-        )
-
 
 def domain_sizes(system, args: Any, dtype) -> tuple[int, ...]:
     """Number of domain components m_I of each mode (0 without a domain), by eval_shape."""
