@@ -204,6 +204,14 @@ class Loop:
             ),
         )
 
+    def _begin_epoch(self, st: LoopState, t, y, mode, zero_run) -> LoopState:
+        """Move to the start of a new epoch at (t, y) in `mode` (its start test comes next)."""
+        return eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
+            st,
+            (t, y, mode, jnp.array(True), jnp.array(True), zero_run),
+        )
+
     def jump(
         self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False
     ) -> LoopState:
@@ -215,11 +223,7 @@ class Loop:
         target = self.kern.targets[k]
         zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
         recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing)
-        jumped = eqx.tree_at(
-            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
-            recorded,
-            (t_ev, y_after, target, jnp.array(True), jnp.array(True), zero_run),
-        )
+        jumped = self._begin_epoch(recorded, t_ev, y_after, target, zero_run)
         jumped = _stop(jumped, zero_run > self.max_zero_epochs, Status.CHATTERING)
         if self.zeno is not None:
             jumped = self.zeno_stage(jumped, args)
@@ -253,11 +257,7 @@ class Loop:
         target = self.kern.completion_targets[c_safe]
         index = self.kern.num_transitions + c_safe
         done = self._record(st_c, index, t_c, x_c, y_after, target, jnp.array(False), jnp.array(False))
-        done = eqx.tree_at(
-            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
-            done,
-            (t_c, y_after, target, jnp.array(True), jnp.array(True), jnp.array(0, jnp.int32)),
-        )
+        done = self._begin_epoch(done, t_c, y_after, target, jnp.array(0, jnp.int32))
         done = _stop(done, st.num_events >= self.max_epochs, Status.MAX_EPOCHS)
         return _select(is_zeno & has, done, stopped)
 
@@ -448,9 +448,9 @@ class Loop:
         x_star = interp.evaluate(t_star)
         F = kern.flow(mode, t_star, x_star, args)
         g = lambda tt, xx: kern.guards(mode, tt, xx, args)[k]  # noqa: E731
-        g_val, gdot = jax.jvp(g, (t_star, x_star), (jnp.ones_like(t_star), F))
-        gdot = sg(gdot)
+        g_val = g(t_star, x_star)
         gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
+        gdot = sg(gt + gx @ sg(F))  # dg/dt along the true vector field
         size = jnp.abs(gt) + jnp.linalg.norm(gx) * jnp.linalg.norm(sg(F))
         grazing = jnp.abs(gdot) <= jnp.cbrt(self.eps) * size
         safe = jnp.where(gdot != 0, gdot, 1.0)
