@@ -89,14 +89,14 @@ def periodic_orbit(
         hit = sol.transitions == k
         i = jnp.argmax(hit)
         n = system.modes[mode].dim
-        return sol.states_after[i, :n], sol.event_times[i], jnp.any(hit)
+        return sol.states_after[i, :n], sol.event_times[i], jnp.any(hit), sol.event_times[0]
 
     def residual(x, _):
         return first_return(x)[0] - x
 
     found = optx.root_find(residual, optx.Newton(rtol=rtol, atol=rtol), x_guess, throw=False)
     x_star = found.value
-    P, period, hit = first_return(x_star)
+    P, period, hit, first_event = first_return(x_star)
     if not bool(hit):
         raise RuntimeError(
             f"periodic_orbit: transition {system.transitions[k].label} did not fire again "
@@ -106,9 +106,7 @@ def periodic_orbit(
     DP = jax.jacfwd(lambda x: first_return(x)[0])(x_star)
 
     # Base point inside the first epoch (not on an event), so the time-T flow is smooth there.
-    first_event = float(simulate(system, x_star, mode, 0.0, t_max, args, stepsize_controller=ctrl,
-                                 max_epochs=max_epochs).event_times[0])
-    base_time = 0.5 * first_event
+    base_time = 0.5 * float(first_event)
     base = simulate(system, x_star, mode, 0.0, base_time, args, stepsize_controller=ctrl,
                     max_epochs=max_epochs).final_state
 
