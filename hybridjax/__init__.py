@@ -11,6 +11,8 @@ from ._montecarlo import monte_carlo as monte_carlo
 from ._montecarlo import wilson_interval as wilson_interval
 from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
+from ._presets import PRESET_NAMES as PRESET_NAMES
+from ._presets import accuracy_preset as accuracy_preset
 from ._saltation import VariationalJacobian as VariationalJacobian
 from ._saltation import saltation_matrix as saltation_matrix
 from ._saltation import variational_jacobian as variational_jacobian

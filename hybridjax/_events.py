@@ -8,7 +8,11 @@
 - Within a step (API semantics 2): each guard is sampled on the step's dense interpolant at
   `interior_points` interior points and the end; a crossing is the first sample with g <= 0
   after a sample with g > 0, so a guard that dips below zero and comes back inside one step
-  is caught (as DifferentialEquations.jl's `interp_points`).
+  is caught (as DifferentialEquations.jl's `interp_points`). Between two samples, g may still
+  dip below zero and come back (a near-grazing crossing): where g has a local minimum between
+  two positive samples (slopes - then +) and the end tangents allow a value <= 0, the minimum
+  is found on the interpolant (`locate_minimum`); a minimum < 0 is a crossing. A minimum of
+  exactly 0 (tangency) is not: the guard is touched, not entered.
 - Location: a bracketed Newton iteration on the interpolant, falling back to bisection,
   stopping when the bracket is narrower than the event tolerance; the event time is the
   bracket's right end, where g <= 0 (so the pre-event state lies in the guard set).
@@ -106,3 +110,64 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
 
     a, b, _, _ = lax.while_loop(cond, body, (a, b, x0, jnp.array(0)))
     return b
+
+
+def dip_candidates(V, D, s_ext):
+    """Per guard, an interval of the step where g may dip below zero between two samples.
+
+    `V` (m+2, K) guard values at the step's start, interior points and end (all > 0 for a
+    dip), `D` (m+2, K) their derivatives along the step, `s_ext` (m+2,) the sample times.
+    An interval with g > 0 at both ends, D < 0 at the left and D > 0 at the right holds a
+    local minimum of g. Where g is convex there, it lies above both end tangents, whose
+    intersection value `low` is therefore a lower bound; the interval is a candidate when
+    low <= 0. Returns `(suspect, i, x0)`: whether each guard has a candidate, the first
+    candidate interval, and the tangents' intersection there (a start for `locate_minimum`).
+    """
+    h = jnp.diff(s_ext)[:, None]
+    V0, V1, D0, D1 = V[:-1], V[1:], D[:-1], D[1:]
+    shape = (V0 > 0) & (V1 > 0) & (D0 < 0) & (D1 > 0)
+    den = jnp.where(shape, D0 - D1, -1.0)
+    u = jnp.clip((V1 - V0 - D1 * h) / den, 0.0, h)
+    low = V0 + D0 * u
+    cand = shape & (low <= 0)
+    i = jnp.argmax(cand, axis=0)
+    x0 = s_ext[i] + jnp.take_along_axis(u, i[None], axis=0)[0]
+    return jnp.any(cand, axis=0), i, x0
+
+
+def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
+    """The minimum of f on [a, b] (f' < 0 at a, > 0 at b), or the first point found with f < 0.
+
+    Newton's method on f' (f' and f'' by nested forward-mode AD), kept inside a shrinking
+    bracket [a, b] with f'(a) < 0 < f'(b), bisecting when a Newton step would leave it; stops
+    as soon as some f(x) < 0 (a crossing is proven), when the step or bracket is below
+    `tol`, or after `max_iter` iterations. Returns `(x, f(x))` at the lowest point seen.
+    """
+    a, b, x0, tol = lax.stop_gradient((a, b, x0, tol))
+    one = jnp.ones_like(x0)
+
+    def slope(x):
+        return jax.jvp(f, (x,), (one,))[1]
+
+    def cond(c):
+        a, b, _, step, f_best, _, i = c
+        return (f_best >= 0) & (b - a > tol) & (jnp.abs(step) > 0.5 * tol) & (i < max_iter)
+
+    def body(c):
+        a, b, x, _, f_best, x_best, i = c
+        fx = f(x)
+        d1, d2 = jax.jvp(slope, (x,), (one,))
+        better = fx < f_best
+        f_best, x_best = jnp.where(better, fx, f_best), jnp.where(better, x, x_best)
+        a = jnp.where(d1 < 0, x, a)
+        b = jnp.where(d1 > 0, x, b)
+        xn = x - d1 / jnp.where(d2 > 0, d2, 1.0)
+        ok = (d2 > 0) & jnp.isfinite(xn) & (xn > a) & (xn < b)
+        xn = jnp.where(ok, xn, 0.5 * (a + b))
+        step = jnp.where(d1 == 0, 0.0, xn - x)
+        return a, b, xn, step, f_best, x_best, i + 1
+
+    init = (a, b, jnp.clip(x0, a, b), jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(jnp.inf, x0.dtype),
+            x0, jnp.array(0))
+    _, _, _, _, f_best, x_best, _ = lax.while_loop(cond, body, init)
+    return x_best, f_best

@@ -142,8 +142,9 @@ class Kernels:
         """Lie derivatives of every watched function along the current flow, and a tolerance band.
 
         L0 = g, L_{j+1} = d/dt L_j along (t, x) -> (1, F_I(t, x)), so L1 = D_t g + D_x g F_I.
-        `band` = sum_i |d g/d x_i| (atol + rtol |x_i|) + |D_t g| tol_t: the change in g that
-        the solver's own tolerances cannot resolve. `scale1` = |D_t g| + sum_i |D_x g_i F_i|,
+        `band` = sum_i |d g/d x_i| (atol + rtol |x_i|) + scale1 tol_t: the change in g that
+        the solver's tolerances and the event-time tolerance cannot resolve (a located event
+        state lies up to |dg/dt| tol_t inside its guard). `scale1` = |D_t g| + sum_i |D_x g_i F_i|,
         against which L1 is judged zero (cancellation) or not.
         """
         K = self.num_watch
@@ -169,7 +170,8 @@ class Kernels:
             out["L1"].append(L1f(tt, yy))
             out["L2"].append(L2f(tt, yy))
             out["L3"].append(L3f(tt, yy))
-            out["band"].append(jnp.sum(jnp.abs(gx) * (atol + rtol * jnp.abs(yy))) + jnp.abs(gt) * tol_t)
-            out["scale1"].append(jnp.abs(gt) + jnp.sum(jnp.abs(gx * F)))
+            scale1 = jnp.abs(gt) + jnp.sum(jnp.abs(gx * F))
+            out["band"].append(jnp.sum(jnp.abs(gx) * (atol + rtol * jnp.abs(yy))) + scale1 * tol_t)
+            out["scale1"].append(scale1)
         return {key: jnp.stack(v) for key, v in out.items()}
 

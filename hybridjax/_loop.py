@@ -30,7 +30,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax import lax
 
-from ._events import departure_step_bound, first_crossings, locate_root, start_decision
+from ._events import (
+    departure_step_bound,
+    dip_candidates,
+    first_crossings,
+    locate_minimum,
+    locate_root,
+    start_decision,
+)
 from ._kernels import Kernels, mask_inputs
 from ._status import Status
 from ._zeno import detect_zeno
@@ -339,24 +346,54 @@ class Loop:
         m = self.interior_points
         frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
         s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
-        ys_s = jnp.concatenate([jax.vmap(interp_sg.evaluate)(s[:-1]), sg(y1)[None]])
-        G = jax.vmap(lambda si, yi: kern.guards(mode, si, yi, args_sg))(s, ys_s)
+        s_ext = jnp.concatenate([sg(t)[None], s])
+        one = jnp.ones_like(s_ext[0])
+        ys_e, yd_e = jax.vmap(lambda x: jax.jvp(interp_sg.evaluate, (x,), (one,)))(s_ext)
+        ys_e = ys_e.at[0].set(sg(st.y)).at[-1].set(sg(y1))
+        # Watched values and their slopes along the step at the start, interior points, end.
+        G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
+            lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
+        G = G_e[1:]
         finite_G = jnp.all(jnp.isfinite(G))
         has, j = first_crossings(st.g_prev, G)
         has = has & keep & finite_G & active
-        any_event = jnp.any(has)
         h = sg(t_next - t)
         tol = self.time_tol(sg(t_next), h)
 
+        def path(k):
+            return lambda x: kern.guards(mode, x, interp_sg.evaluate(x), args_sg)[k]
+
+        # A guard can dip below zero and come back between two samples (near-grazing):
+        # where the end tangents allow it, find the minimum on the interpolant.
+        V = jnp.concatenate([st.g_prev[None], G])
+        suspect, i_d, x0_d = dip_candidates(V, jnp.where(jnp.isfinite(D_e), D_e, 0.0), s_ext)
+        suspect = suspect & keep & finite_G & active & (~has | (i_d < j))
+
+        def refine(_):
+            def lowest(k, a_k, b_k, x_k):
+                return locate_minimum(path(k), a_k, b_k, x_k, tol)
+
+            return jax.vmap(lowest)(jnp.arange(kern.num_watch), s_ext[i_d], s_ext[i_d + 1], x0_d)
+
+        def no_refine(_):
+            return x0_d, jnp.ones_like(x0_d)
+
+        if kern.num_watch:
+            x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine, no_refine, None)
+            dip = suspect & (g_min < 0)
+        else:
+            x_min, dip = x0_d, suspect
+        a_all = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
+        b_all = jnp.where(dip, x_min, s[j])
+        has = has | dip
+        any_event = jnp.any(has)
+
         # locate: only when some execution in the batch has an event in this step.
         def locate(_):
-            s_ext = jnp.concatenate([sg(t)[None], s])
-            a = jnp.where(has, s_ext[j], s[j])
-            b = s[j]
+            a, b = a_all, b_all
 
             def root(k, a_k, b_k):
-                g_k = lambda x: kern.guards(mode, x, interp_sg.evaluate(x), args_sg)[k]  # noqa: E731
-                return locate_root(g_k, a_k, b_k, tol)
+                return locate_root(path(k), a_k, b_k, tol)
 
             tk = jax.vmap(root)(jnp.arange(kern.num_watch), a, b)
             tk = jnp.where(has, tk, jnp.inf)

@@ -1,5 +1,6 @@
 """`simulate`: run one execution of a hybrid system (vmap it for many)."""
 
+import warnings
 from typing import Any
 
 import diffrax
@@ -89,6 +90,26 @@ def _default_controller(dtype) -> diffrax.PIDController:
     return diffrax.PIDController(rtol=tol, atol=tol)
 
 
+def _warn_unreachable_tolerance(controller, dtype) -> None:
+    """Warn when rtol is below what `dtype` resolves: steps then shrink to rounding level,
+    so the run costs many more steps (or ends with MAX_STEPS) without gaining accuracy."""
+    rtol = getattr(controller, "rtol", None)
+    if rtol is None:
+        return
+    try:
+        rtol = float(np.min(np.asarray(rtol)))
+    except jax.errors.TracerArrayConversionError:  # traced tolerances: nothing to check
+        return
+    floor = 8 * float(jnp.finfo(dtype).eps)
+    if rtol < floor:
+        warnings.warn(
+            f"rtol={rtol:g} is below what {jnp.dtype(dtype).name} resolves "
+            f"(8 eps = {floor:.1e}); the solver cannot honour it. Use rtol >= {floor:.0e}, "
+            "or float64 (jax.config.update('jax_enable_x64', True) and float64 x0).",
+            stacklevel=3,
+        )
+
+
 def _initial_state(system: HybridSystem, x0, mode0, dtype) -> jax.Array:
     x0 = jnp.asarray(x0, dtype)
     n = system.max_dim
@@ -170,7 +191,9 @@ def simulate(
       (floored at 8 ulp of t): the root bracket is narrowed below `event_tol * h`.
       Default 1e-12 (float64), 1e-6 (float32).
     - `interior_points`: guards are also checked at this many interior points of each step's
-      dense output, to catch a guard entered and left within one step.
+      dense output, to catch a guard entered and left within one step; between samples, a
+      local minimum of a guard that may reach zero is searched for on the dense output, so
+      near-grazing crossings (down to rounding level) are found too.
     - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
     - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection. After each
       event, if the last `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch
@@ -217,6 +240,7 @@ def simulate(
         raise ValueError(f"zeno_max_ratio must be in (0, 1), got {zeno_max_ratio!r}.")
     if event_tol is None:
         event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
+    _warn_unreachable_tolerance(controller, dtype)
 
     y0 = _initial_state(system, x0_arr, mode0, dtype)
     m0 = as_mode_index(system, mode0)

@@ -41,8 +41,8 @@ def _check_one(what: str, fn, dim: int, args, dtype, strict: bool, want) -> None
     problem = want(out.shape)
     if problem is not None:
         raise DefinitionError(f"{what} {problem}")
-    if not jnp.issubdtype(out.dtype, jnp.inexact):
-        raise DefinitionError(f"{what} returned dtype {out.dtype}; expected a floating dtype.")
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        raise DefinitionError(f"{what} returned dtype {out.dtype}; expected a real floating dtype.")
 
 
 def check_function_shapes(system, args: Any, dtype, strict: bool) -> None:

@@ -1,6 +1,5 @@
 """Execution semantics of API.md: epoch-start test, priority, zero-length epochs, mixed dims."""
 
-import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -136,21 +135,6 @@ def test_vmap_over_thermostat_modes_and_closed_form_switching():
         np.testing.assert_allclose(sol.event_times[i, :n], ref["event_times"], atol=1e-8)
         assert [THERMO.mode_names[int(m)] for m in sol.epoch_modes[i, : n + 1]] == ref["modes"]
         np.testing.assert_allclose(sol.final_state[i], ref["final_state"], atol=1e-8)
-
-
-def test_double_crossing_within_one_step_is_caught_by_interior_points():
-    # x' = 1; the guard (x - 0.5)^2 - 0.01^2 is negative only for x in (0.49, 0.51). One
-    # constant step of 1 jumps over it; the interior samples of the dense output see it.
-    m = hj.Mode("m", lambda t, x, p: jnp.ones_like(x), 1)
-    done = hj.Mode("done", lambda t, x, p: jnp.zeros_like(x), 1)
-    sys = hj.HybridSystem([m, done], [hj.Transition("m", "done",
-                                                    guard=lambda t, x, p: (x[0] - 0.5) ** 2 - 1e-4)])
-    kw = dict(solver=diffrax.Tsit5(), stepsize_controller=diffrax.ConstantStepSize(), dt0=1.0)
-    missed = hj.simulate(sys, jnp.array([0.0]), "m", 0.0, 1.0, interior_points=0, **kw)
-    caught = hj.simulate(sys, jnp.array([0.0]), "m", 0.0, 1.0, interior_points=100, **kw)
-    assert int(missed.num_events) == 0  # the trap, without interior points
-    assert int(caught.num_events) == 1 and int(caught.final_mode) == 1
-    np.testing.assert_allclose(caught.event_times[0], 0.49, atol=1e-12)
 
 
 def test_event_at_t0_when_the_initial_state_is_in_a_guard():
