@@ -128,14 +128,7 @@ def long_runs():
 
 def stiff():
     lam = 1e6
-
-    def mode(u):
-        return hj.Mode("up" if u > 0 else "down",
-                       lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]), 2)
-
-    sys = hj.HybridSystem([mode(1.0), mode(-1.0)], [
-        hj.Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1]),
-        hj.Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1])])
+    sys = examples.stiff_relay()
     rows = []
     for solver in (diffrax.Kvaerno5(), diffrax.Tsit5()):
         t = time.perf_counter()
@@ -143,7 +136,7 @@ def stiff():
                           stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8), max_steps=20_000)
         wall = time.perf_counter() - t
         n = int(sol.num_events)
-        ref = (1 + 1 / lam) * (1 + 2 * np.arange(n))
+        ref = examples.stiff_relay_closed_form(0.0, lam, 20.0)["event_times"][:n]
         rows.append(dict(solver=type(solver).__name__, status=str(sol.status_name), events=n,
                          steps=int(sol.num_steps), final_time=float(sol.final_time),
                          time_error=float(np.max(np.abs(np.asarray(sol.event_times[:n]) - ref))) if n else None,

@@ -5,6 +5,9 @@
 - `wall_particle`: a 4-D flight mode and a 2-D sliding mode (modes of different dimension).
 - `ceiling_ball`: a ball thrown at a ceiling with plastic impact; the reset lands in the
   interior of the lift-off guard (the seed's "reset into guards", a zero-length epoch).
+- `rimless_wheel`, `pendulum_wall`, `truncated_ball`: periodic orbits, a nonlinear impact,
+  Zeno truncation.
+- `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
 
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
@@ -282,3 +285,61 @@ def truncated_ball_closed_form(h0: float, g: float, e: float, v_min: float) -> d
         w *= e
         t += 2 * w / g
     return dict(bounce_times=np.array(bounces), settle_time=t)
+
+
+# ----------------------------------------------------------------------------- relays
+
+
+def stiff_relay() -> HybridSystem:
+    r"""A relay watching a fast first-order lag: stiffness ratio `args` (e.g. 1e6).
+
+    State (s, y): slow s' = u, fast y' = -lam (y - s), with u = +1 in mode "up" and -1 in
+    "down"; "up" -> "down" when y >= 1 (guard 1 - y), "down" -> "up" when y <= -1 (guard 1 + y).
+    `args = lam`. Explicit solvers need ~ lam steps per unit time; use `diffrax.Kvaerno5()`.
+    """
+
+    def mode(u):
+        return Mode("up" if u > 0 else "down",
+                    lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]), dim=2)
+
+    return HybridSystem([mode(1.0), mode(-1.0)], [
+        Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1], name="switch down"),
+        Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1], name="switch up"),
+    ])
+
+
+def stiff_relay_closed_form(s0: float, lam: float, t1: float) -> dict:
+    """Switching times and final state of `stiff_relay` from (s0, s0) in "up", |s0| < 1.
+
+    After its 1/lam transient y = s - u/lam, so u y = 1 when u s = a = 1 + 1/lam: switches at
+    t_1 = a - s0 and every 2a after (the transients left at a switch are e^{-2 lam a}, i.e. 0).
+    """
+    a = 1 + 1 / lam
+    times = []
+    t = a - s0
+    while t <= t1:
+        times.append(t)
+        t += 2 * a
+    n = len(times)
+    u = 1.0 if n % 2 == 0 else -1.0
+    s_end = s0 + t1 if n == 0 else -u * a + u * (t1 - times[-1])
+    return dict(event_times=np.array(times), final_state=np.array([s_end, s_end - u / lam]),
+                final_mode="up" if u > 0 else "down")
+
+
+def van_der_pol_relay() -> HybridSystem:
+    r"""Van der Pol oscillator with relay feedback and hysteresis.
+
+    x' = y, y' = mu (1 - x^2) y - x + q with q = +1 in mode "q+" and -1 in "q-"; q switches
+    when q x crosses 0.5 upward (guard 0.5 - q x). `args = mu`. No closed form: a benchmark
+    problem (`benchmarks/problems.py`) compared with a reference at tight tolerance.
+    """
+
+    def mode(q):
+        return Mode("q+" if q > 0 else "q-",
+                    lambda t, x, mu: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + q]), dim=2)
+
+    return HybridSystem([mode(1.0), mode(-1.0)], [
+        Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
+        Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
+    ])

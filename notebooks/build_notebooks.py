@@ -178,6 +178,109 @@ print("closed-form Zeno fraction of the same samples:", np.mean(np.sqrt(2 * h / 
 fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
 hjp.status_histogram(res, a1); hjp.zeno_histogram(res, a2); plt.show()"""),
     ],
+    "04_speed_versus_accuracy": [
+        ("md", """# Speed versus accuracy
+
+Every knob trades time for error: the solver (its order $p$: the local error of a step $h$ is $O(h^{p+1})$),
+the tolerances (`rtol`, `atol`: each step keeps $\\|\\text{err}_i / (\\text{atol} + \\text{rtol}\\,|y_i|)\\|_{\\text{RMS}} \\le 1$),
+the event tolerance (event times are located to `event_tol` $\\times$ the step), and the dtype. This notebook shows
+what each costs, measured by `benchmarks/work_precision.py` against closed forms (the file it wrote is read here),
+and then checks a few points live."""),
+        ("code", SETUP + """
+import json, pathlib
+res = json.loads(pathlib.Path("../benchmarks/results/work_precision.json").read_text())
+m = res["machine"]
+print(f"measured on {m['cpu']} ({m['cores']} cores, {m['device']}); jax {m['jax']}, diffrax {m['diffrax']}")"""),
+        ("md", """## Work-precision diagrams
+
+One point per (solver, tolerance): the largest final-state error over the batch against the wall time per
+execution (the batch run under `jax.jit(jax.vmap(...))`). Down and to the left is better. Solid: float64;
+dashed: float32, whose error floor is its resolution, about $10^{-7}$ relative."""),
+        ("code", """colors = dict(Bosh3="C0", Tsit5="C1", Dopri5="C2", Dopri8="C3", Kvaerno3="C4", Kvaerno5="C5")
+wp = res["work_precision"]
+from matplotlib.ticker import NullFormatter
+fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+axes = axes.ravel()
+for ax, (name, block) in zip(axes, wp.items()):
+    for solver in dict.fromkeys(r["solver"] for r in block["rows"]):
+        for dtype, style in (("float64", "-o"), ("float32", "--s")):
+            rs = [r for r in block["rows"] if r["solver"] == solver and r["dtype"] == dtype and r["error"] == r["error"]]
+            if rs:
+                ax.loglog([r["run_s"] / r["n"] * 1e6 for r in rs], [max(r["error"], 1e-16) for r in rs], style,
+                          color=colors[solver], ms=3, label=f"{solver} {dtype[-2:]}")
+    ax.set_title(name, fontsize=9); ax.set_xlabel("us per execution (batched)"); ax.grid(True, which="both", alpha=0.3)
+    ax.xaxis.set_minor_formatter(NullFormatter()); ax.set_ylabel("max final-state error"); ax.legend(fontsize=7)
+fig.tight_layout(); plt.show()"""),
+        ("md", """Read off the diagrams:
+
+- **A (bouncing ball)**: the flow is a polynomial that every Runge-Kutta method integrates exactly, so the
+  error is round-off and the event location at every tolerance; the cheapest solver wins.
+- **B (Van der Pol relay)** and **C (thermostat)**: the error falls as the tolerance does, until the event
+  location on the dense output dominates. Dopri8 takes long steps and its events are located on its interpolant over
+  them: at equal tolerance it is *less* accurate than Dopri5 or Tsit5 here, which is why the `precise` preset uses Dopri5.
+- **D (stiff relay)**: only the implicit Kvaerno solvers get anywhere (Tsit5 needs about $10^6 \\times 20 / 3$ steps).
+- Executions whose number of events is wrong appear at loose tolerances on C: an event missed or added changes
+  the whole rest of the execution, so they are counted apart (see the README's tables)."""),
+        ("md", """## Against what you would write otherwise
+
+Same problems, same tolerance ($10^{-9}$), same run: `scipy.integrate.solve_ivp` with terminal events in a Python
+loop over epochs, and a plain diffrax loop (a jitted `vmap` of a bounded while loop of `diffeqsolve` + `Event`)."""),
+        ("code", """for name, b in res["baselines"].items():
+    print(name)
+    print(f"  hybridjax           {b['ours_exec_per_s']:10.0f} executions/s")
+    for key in ("scipy_RK45", "scipy_DOP853", "diffrax_lockstep"):
+        x = b[key]
+        print(f"  {key:<19} {x['exec_per_s']:10.0f} executions/s  error {x['error']:.0e}  -> hybridjax {x['ratio']:.2g}x")"""),
+        ("md", """hybridjax is one to two orders of magnitude faster than the scipy loop. The plain diffrax loop is faster still
+on these problems: it does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
+at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short
+epochs, grazing, resets into guards, Zeno), see notebook 03 and the README's numerical limits. A batched fast path is
+the subject of ongoing work."""),
+        ("md", """## Throughput against batch size
+
+Executions per second grow with the batch until the machine's vector units are busy."""),
+        ("code", """tp = res["throughput"]["batch"]
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 3.6))
+a1.loglog([r["n"] for r in tp], [r["ours_exec_per_s"] for r in tp], "-o", label="hybridjax")
+a1.loglog([r["n"] for r in tp], [r["lockstep_exec_per_s"] for r in tp], "-s", label="diffrax lock-step loop")
+a1.set_xlabel("batch size"); a1.set_ylabel("executions / s"); a1.legend(); a1.grid(True, which="both", alpha=0.3)
+md = res["throughput"]["modes"]
+a2.semilogx([r["modes"] for r in md], [r["exec_per_s"] for r in md], "-o", base=2)
+a2.set_xlabel("modes (= guards) in a ring"); a2.set_ylabel("executions / s"); a2.grid(True, which="both", alpha=0.3)
+fig.tight_layout(); plt.show()"""),
+        ("md", """Under `vmap` every mode's flow is evaluated for every execution at each step (then one is selected), so
+the cost grows with the number of modes modelled: model only the modes a scene needs."""),
+        ("md", """## Presets, checked live
+
+`hj.accuracy_preset(name)` gives `solver`, `stepsize_controller` and `event_tol` for `simulate`. Here they run on
+200 random balls with a restitution that makes the flight times irregular, against the closed form."""),
+        ("code", """ball = examples.bouncing_ball()
+rng = np.random.default_rng(0)
+h0, v0 = rng.uniform(0.5, 1.5, 200), rng.uniform(-1, 1, 200)
+x0 = jnp.asarray(np.stack([h0, v0], 1))
+ref = np.stack([examples.bouncing_ball_closed_form(h, v, 9.8, 0.8, 2.5)["final_state"] for h, v in zip(h0, v0)])
+import time
+for name in hj.PRESET_NAMES:
+    kw = hj.accuracy_preset(name)
+    run = jax.jit(jax.vmap(lambda x: hj.simulate(ball, x, "flight", 0.0, 2.5, {"g": 9.8, "e": 0.8}, **kw)))
+    jax.block_until_ready(run(x0))
+    t = time.perf_counter(); sol = jax.block_until_ready(run(x0)); dt = time.perf_counter() - t
+    err = np.max(np.abs(np.asarray(sol.final_state) - ref))
+    print(f"{name:>9}: {type(kw['solver']).__name__:>6}, rtol {kw['stepsize_controller'].rtol:.0e}:"
+          f" {200 / dt:8.0f} executions/s, max error {err:.1e}")"""),
+        ("md", """## float32
+
+float32 resolves about $10^{-7}$ relative: tolerances below $8\\varepsilon \\approx 10^{-6}$ cannot be honoured, and
+`simulate` warns when asked (it still ends with a status, never hangs). Within that, float32 runs the same
+events (the Zeno point of the ball is found to $3 \\times 10^{-6}$ relative) at lower memory per execution."""),
+        ("code", """import warnings
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    s32 = hj.simulate(ball, jnp.array([1.0, 0.0], jnp.float32), "flight", 0.0, 5.0, {"g": 9.8, "e": 0.8},
+                      stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+print(caught[0].message if caught else "no warning")
+print(s32.status_name, "Zeno time", float(s32.zeno_time), "closed form", examples.zeno_time(1.0, 9.8, 0.8))"""),
+    ],
 }
 
 

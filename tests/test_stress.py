@@ -172,31 +172,20 @@ def test_nearly_simultaneous_guards_are_deterministic(offsets, winner, simultane
 LAM = 1e6
 
 
-def _relay(u: float) -> hj.Mode:
-    # slow s' = u, fast y' = -LAM (y - s): stiffness ratio 1e6. The relay watches the fast y.
-    return hj.Mode("up" if u > 0 else "down", lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]), 2)
-
-
-RELAY = hj.HybridSystem([_relay(1.0), _relay(-1.0)], [
-    hj.Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1]),
-    hj.Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1]),
-])
+RELAY = examples.stiff_relay()
 
 
 def test_stiff_relay_with_kvaerno5_matches_the_closed_form():
-    # After its 1e-6 s transient y = s - u / LAM, so u y = 1 when u s = 1 + 1/LAM: switches at
-    # t_k = (1 + 1/LAM)(1 + 2k) (transients left over are e^{-LAM}, i.e. 0).
     ctrl = diffrax.PIDController(rtol=1e-8, atol=1e-8)
     sol = hj.simulate(RELAY, jnp.zeros(2), "up", 0.0, 20.0, LAM, solver=diffrax.Kvaerno5(),
                       stepsize_controller=ctrl, max_steps=2000)
-    n = int(sol.num_events)
-    assert sol.status_name == "T1_REACHED" and n == 10
-    np.testing.assert_allclose(sol.event_times[:n], (1 + 1 / LAM) * (1 + 2 * np.arange(n)), rtol=0, atol=1e-9)
+    ref = examples.stiff_relay_closed_form(0.0, LAM, 20.0)  # switches at (1 + 1/LAM)(1 + 2k)
+    n = len(ref["event_times"])
+    assert sol.status_name == "T1_REACHED" and int(sol.num_events) == n == 10
+    np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], rtol=0, atol=1e-9)
     assert int(sol.num_steps) < 500  # an explicit solver needs ~ LAM * 20 / 3 steps
-    # Ten switches: back in "up" (u = +1) since t_9, where s = -(1 + 1/LAM); then y = s - 1/LAM.
-    s_end = -(1 + 1 / LAM) + (20.0 - float(sol.event_times[n - 1]))
-    assert int(sol.final_mode) == 0
-    np.testing.assert_allclose(sol.final_state, [s_end, s_end - 1 / LAM], atol=1e-8)
+    assert RELAY.mode_names[int(sol.final_mode)] == ref["final_mode"]
+    np.testing.assert_allclose(sol.final_state, ref["final_state"], atol=1e-8)
 
 
 def test_stiff_relay_with_an_explicit_solver_stops_with_max_steps_and_keeps_its_progress():
@@ -334,3 +323,28 @@ def test_wrong_output_dtypes_are_caught_at_definition(where, message):
     reset = (lambda t, x, p: x > 0) if where == "reset" else (lambda t, x, p: x)
     with pytest.raises(hj.DefinitionError, match=message):
         hj.HybridSystem([hj.Mode("m", flow, 1)], [hj.Transition("m", "m", guard=guard, reset=reset)])
+
+
+# ------------------------------------------------------------------ accuracy presets
+@pytest.mark.parametrize("name, bound", [("fast", 5e-3), ("balanced", 1e-6), ("precise", 1e-9)])
+def test_accuracy_presets_meet_their_error_on_the_thermostat(name, bound):
+    # 25 heating/cooling switches from 19 degrees, ambient 30, one hour, against the closed form;
+    # errors accumulate along the switches (fast: ~2e-3 by the last one).
+    p = dict(a=0.1, T_amb=30.0, P_heat=2.5, P_cool=2.0, s=20.0)
+    sol = hj.simulate(examples.thermostat(), jnp.array([19.0]), "off", 0.0, 60.0, p, **hj.accuracy_preset(name))
+    ref = examples.thermostat_closed_form(19.0, "off", p, 60.0)
+    n = len(ref["event_times"])
+    assert int(sol.num_events) == n and n >= 5
+    np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], rtol=0, atol=bound)
+    np.testing.assert_allclose(sol.final_state, ref["final_state"], rtol=0, atol=bound)
+
+
+def test_accuracy_preset_arguments():
+    kw = hj.accuracy_preset("precise")
+    assert isinstance(kw["solver"], diffrax.Dopri5) and kw["stepsize_controller"].rtol == 1e-12
+    kw32 = hj.accuracy_preset("balanced", jnp.float32)
+    assert kw32["stepsize_controller"].rtol >= 8 * np.finfo(np.float32).eps
+    with pytest.raises(ValueError, match="unknown accuracy preset 'quick'"):
+        hj.accuracy_preset("quick")
+    with pytest.raises(ValueError, match="float16"):
+        hj.accuracy_preset("fast", jnp.float16)
