@@ -73,9 +73,13 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
 
     Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
-    falling back to bisection when a Newton step leaves the bracket; each iterate is flanked
-    by two probes at +-delta (delta = max(tol/1000, 4 ulp)) so the bracket closes as soon
-    as Newton has converged, leaving the right end within about delta of the root.
+    falling back to bisection when a Newton step leaves the bracket or is not at most half
+    the step before last (Numerical Recipes' rtsafe). Each iterate x_k is flanked by two
+    probes at +-delta_k, delta_k = 2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]:
+    once Newton converges quadratically the root lies well within |x_k - x_{k-1}| of x_k, so
+    the probes straddle it and the bracket closes at once (a fixed tiny delta would wait for
+    Newton to land within rounding noise of the root, and bisect ~40 times instead). A final
+    Newton step from the right end then puts it a few ulps past the root (g <= 0 kept).
     No gradients: the caller differentiates the event time by the implicit function theorem.
     """
     a, b, tol = lax.stop_gradient((a, b, tol))
@@ -85,13 +89,14 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     x0 = jnp.clip(x0, a, b)
 
     def cond(c):
-        a, b, _, i = c
+        a, b, *_, i = c
         return (b - a > tol) & (i < max_iter)
 
     def body(c):
-        a, b, x, i = c
+        a, b, x, dx, dx_old, i = c
         fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
-        delta = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
+        floor = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
+        delta = jnp.clip(2 * jnp.abs(dx), floor, jnp.maximum(0.5 * tol, floor))
         probes = jnp.clip(jnp.stack([x - delta, x + delta]), a, b)
         fp = jax.vmap(f)(probes)
         pts = jnp.concatenate([x[None], probes])
@@ -100,16 +105,28 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
         neg = (vals <= 0) & jnp.isfinite(vals)
         a_new = jnp.maximum(a, jnp.max(jnp.where(pos, pts, a)))
         b_new = jnp.minimum(b, jnp.min(jnp.where(neg, pts, b)))
-        safe_d = jnp.where(dfx != 0, dfx, 1.0)
-        xn = x - fx / safe_d
+        step = fx / jnp.where(dfx != 0, dfx, 1.0)
+        xn = x - step
+        # As in rtsafe: take Newton's step if it stays in the bracket and is at most half the
+        # step before last (converging); bisect otherwise.
         ok = (dfx != 0) & jnp.isfinite(xn) & (xn > a_new) & (xn < b_new)
-        # Newton that does not at least halve the bracket's distance falls back to bisection.
-        ok = ok & (b_new - a_new < 0.75 * (b - a) + tol)
-        xn = jnp.where(ok, xn, 0.5 * (a_new + b_new))
-        return a_new, b_new, xn, i + 1
+        ok = ok & (2 * jnp.abs(step) <= jnp.abs(dx_old))
+        mid = 0.5 * (a_new + b_new)
+        xn = jnp.where(ok, xn, mid)
+        return a_new, b_new, xn, jnp.abs(xn - x), dx, i + 1
 
-    a, b, _, _ = lax.while_loop(cond, body, (a, b, x0, jnp.array(0)))
-    return b
+    a, b, *_ = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
+    # Polish: one Newton step from b (within tol of the root, so it lands within rounding of
+    # it), then the first of three points 4, 16, 64 ulp to its right where f <= 0, else b. The
+    # few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its
+    # arithmetic rounds differently by an ulp or so).
+    fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
+    xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
+    ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
+    cands = xp + jnp.array([4.0, 16.0, 64.0], b.dtype) * ulp
+    fc = jax.vmap(f)(cands)
+    good = (fc <= 0) & (cands > a) & (cands <= b) & jnp.isfinite(cands) & (dfb != 0)
+    return jnp.where(jnp.any(good), cands[jnp.argmax(good)], b)
 
 
 def dip_candidates(V, D, s_ext):

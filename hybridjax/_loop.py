@@ -14,6 +14,13 @@ equinox's internal while loop, `checkpointed` for reverse mode (as diffrax's
 `RecursiveCheckpointAdjoint`), `lax` for forward mode, `bounded` for both: a bare
 `lax.while_loop` cannot be reverse-differentiated.
 
+Cost under `vmap` is the cost of each iteration's operations over the whole batch, so the
+loop keeps them few: guards are sampled on the dense output at constant fractions of the
+step (its polynomials fold at compile time), the root and minimum searches run under a
+`lax.cond` taken only when some execution needs them, and events are recorded as "pending"
+in the small loop state and written into the max_epochs-long `EventRecord` once per
+iteration, so that the many per-execution selects of an iteration never copy the record.
+
 Event times are differentiated by the implicit function theorem with the true vector field,
 dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder
 or the interpolant's derivative; the next epoch starts at that traced time, so AD through
@@ -28,6 +35,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax import lax
 
 from ._events import (
@@ -63,6 +71,29 @@ class LoopState(eqx.Module):
     num_rejected: jax.Array
     done: jax.Array
     status: Status
+    # Events recorded in this iteration (at most two: a jump and a Zeno completion), written
+    # into the `EventRecord` once at the end of the iteration. Keeping the max_epochs-long
+    # record out of the state keeps it out of the many per-execution selects of an iteration.
+    pend_count: jax.Array
+    pend_at: jax.Array
+    pend_time: jax.Array
+    pend_transition: jax.Array
+    pend_before: jax.Array
+    pend_after: jax.Array
+    pend_target: jax.Array
+    pend_simultaneous: jax.Array
+    pend_grazing: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array
+    recent_times: jax.Array  # the last zeno_window + 2 event times, oldest first (Zeno test)
+    recent_states: jax.Array  # the last 3 post-event states
+    ys: jax.Array
+    saved_modes: jax.Array
+
+
+class EventRecord(eqx.Module):
+    """The events of one execution, padded to max_epochs (inf / -1 / False)."""
+
     event_times: jax.Array
     transitions: jax.Array
     states_before: jax.Array
@@ -70,10 +101,6 @@ class LoopState(eqx.Module):
     epoch_modes: jax.Array
     simultaneous: jax.Array
     grazing: jax.Array
-    zeno_time: jax.Array
-    zeno_state: jax.Array
-    ys: jax.Array
-    saved_modes: jax.Array
 
 
 def _select(pred, a, b):
@@ -116,6 +143,7 @@ class Loop:
     ):
         self.kern = Kernels(system, args, dtype)
         self.zeno = zeno
+        self.recent = (zeno["window"] + 2) if zeno is not None else 2
         self.system = system
         self.t1 = t1
         self.args = args
@@ -150,7 +178,7 @@ class Loop:
 
     # ----------------------------------------------------------------- init
     def init(self, t0, y0, mode0) -> LoopState:
-        n, E = self.kern.n, self.max_epochs
+        n = self.kern.n
         dt = self.dtype
         args_ext = (mode0, self.args)
         solver_state = self.solver.init(self.terms, t0, self.t1, y0, args_ext)
@@ -177,6 +205,58 @@ class Loop:
             num_rejected=jnp.array(0, jnp.int32),
             done=jnp.array(False),
             status=Status.T1_REACHED,
+            pend_count=jnp.array(0, jnp.int32),
+            pend_at=jnp.zeros((2,), jnp.int32),
+            pend_time=jnp.zeros((2,), dt),
+            pend_transition=jnp.zeros((2,), jnp.int32),
+            pend_before=jnp.zeros((2, n), dt),
+            pend_after=jnp.zeros((2, n), dt),
+            pend_target=jnp.zeros((2,), jnp.int32),
+            pend_simultaneous=jnp.zeros((2,), bool),
+            pend_grazing=jnp.zeros((2,), bool),
+            zeno_time=jnp.array(jnp.inf, dt),
+            zeno_state=jnp.full((n,), jnp.inf, dt),
+            recent_times=jnp.full((self.recent,), jnp.inf, dt),
+            recent_states=jnp.full((3, n), jnp.inf, dt),
+            ys=ys,
+            saved_modes=saved_modes,
+        )
+
+    # ----------------------------------------------------------------- jump
+    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing):
+        """Record an event (as pending: `flush` writes it into the EventRecord)."""
+        slot = jnp.arange(2) == st.pend_count
+
+        def put(arr, value):
+            m = slot.reshape(slot.shape + (1,) * (arr.ndim - 1))
+            return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
+
+        return eqx.tree_at(
+            lambda s: (
+                s.pend_at, s.pend_time, s.pend_transition, s.pend_before, s.pend_after, s.pend_target,
+                s.pend_simultaneous, s.pend_grazing, s.pend_count, s.num_events, s.recent_times,
+                s.recent_states,
+            ),
+            st,
+            (
+                put(st.pend_at, st.num_events),
+                put(st.pend_time, t_ev),
+                put(st.pend_transition, index),
+                put(st.pend_before, y_before),
+                put(st.pend_after, y_after),
+                put(st.pend_target, target),
+                put(st.pend_simultaneous, simultaneous),
+                put(st.pend_grazing, grazing),
+                st.pend_count + 1,
+                st.num_events + 1,
+                jnp.concatenate([st.recent_times[1:], jnp.reshape(t_ev, (1,)).astype(st.recent_times.dtype)]),
+                jnp.concatenate([st.recent_states[1:], y_after[None].astype(st.recent_states.dtype)]),
+            ),
+        )
+
+    def init_record(self, mode0) -> EventRecord:
+        E, n, dt = self.max_epochs, self.kern.n, self.dtype
+        return EventRecord(
             event_times=jnp.full((E,), jnp.inf, dt),
             transitions=jnp.full((E,), -1, jnp.int32),
             states_before=jnp.full((E, n), jnp.inf, dt),
@@ -184,32 +264,30 @@ class Loop:
             epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
             simultaneous=jnp.zeros((E,), bool),
             grazing=jnp.zeros((E,), bool),
-            zeno_time=jnp.array(jnp.inf, dt),
-            zeno_state=jnp.full((n,), jnp.inf, dt),
-            ys=ys,
-            saved_modes=saved_modes,
         )
 
-    # ----------------------------------------------------------------- jump
-    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing):
-        i = st.num_events
-        return eqx.tree_at(
-            lambda s: (
-                s.event_times, s.transitions, s.states_before, s.states_after,
-                s.epoch_modes, s.simultaneous, s.grazing, s.num_events,
-            ),
-            st,
-            (
-                st.event_times.at[i].set(t_ev, mode="drop"),
-                st.transitions.at[i].set(index, mode="drop"),
-                st.states_before.at[i].set(y_before, mode="drop"),
-                st.states_after.at[i].set(y_after, mode="drop"),
-                st.epoch_modes.at[i + 1].set(target, mode="drop"),
-                st.simultaneous.at[i].set(simultaneous, mode="drop"),
-                st.grazing.at[i].set(grazing, mode="drop"),
-                i + 1,
-            ),
-        )
+    def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
+        """Write the pending events of this iteration into the record (masked, no scatter:
+        under vmap a scatter with one index per execution is a serial loop on CPU)."""
+        E = self.max_epochs
+        for slot in range(2):
+            i = jnp.where(slot < st.pend_count, st.pend_at[slot], E + 1)
+            row, row_m = jnp.arange(E) == i, jnp.arange(E + 1) == i + 1
+
+            def put(arr, value, mask=row):
+                m = mask.reshape(mask.shape + (1,) * (arr.ndim - 1))
+                return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
+
+            rec = EventRecord(
+                event_times=put(rec.event_times, st.pend_time[slot]),
+                transitions=put(rec.transitions, st.pend_transition[slot]),
+                states_before=put(rec.states_before, st.pend_before[slot]),
+                states_after=put(rec.states_after, st.pend_after[slot]),
+                epoch_modes=put(rec.epoch_modes, st.pend_target[slot], row_m),
+                simultaneous=put(rec.simultaneous, st.pend_simultaneous[slot]),
+                grazing=put(rec.grazing, st.pend_grazing[slot]),
+            )
+        return rec
 
     def _begin_epoch(self, st: LoopState, t, y, mode, zero_run) -> LoopState:
         """Move to the start of a new epoch at (t, y) in `mode` (its start test comes next)."""
@@ -245,8 +323,7 @@ class Loop:
 
     def zeno_stage(self, st: LoopState, args) -> LoopState:
         """After an event: if event times accumulate before t1, stop with ZENO or complete."""
-        is_zeno, t_inf, x_inf = detect_zeno(st.event_times, st.states_after, st.num_events,
-                                            self.t1, **self.zeno)
+        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, **self.zeno)
         is_zeno = is_zeno & ~st.done
         st = eqx.tree_at(
             lambda s: (s.zeno_time, s.zeno_state),
@@ -348,8 +425,15 @@ class Loop:
         s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
         s_ext = jnp.concatenate([sg(t)[None], s])
         one = jnp.ones_like(s_ext[0])
-        ys_e, yd_e = jax.vmap(lambda x: jax.jvp(interp_sg.evaluate, (x,), (one,)))(s_ext)
-        ys_e = ys_e.at[0].set(sg(st.y)).at[-1].set(sg(y1))
+        # The dense output on the unit interval, at constant fractions theta: its polynomials
+        # in theta fold to constants at compile time, leaving one weighted sum of the stages
+        # per sample (the same values as on [t, t_next]: diffrax's stages are increments).
+        unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
+        h_safe = jnp.maximum(sg(t_next - t), jnp.finfo(self.dtype).tiny)
+        samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,))
+                   for th in np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])]
+        ys_e = jnp.stack([y for y, _ in samples]).at[0].set(sg(st.y)).at[-1].set(sg(y1))
+        yd_e = jnp.stack([yd for _, yd in samples]) / h_safe
         # Watched values and their slopes along the step at the start, interior points, end.
         G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
             lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
@@ -495,19 +579,22 @@ class Loop:
         return t_ev, x_star + F * (t_ev - t_star), grazing
 
     # ----------------------------------------------------------------- the loop
-    def body(self, st: LoopState) -> LoopState:
+    def body(self, carry):
+        st, rec = carry
         new = self.step_stage(self.start_stage(st))
-        return _select(st.done, st, new)
+        new = _select(st.done, st, new)
+        rec = self.flush(rec, new)
+        return eqx.tree_at(lambda s: s.pend_count, new, jnp.zeros_like(new.pend_count)), rec
 
-    def run(self, t0, y0, mode0) -> LoopState:
-        st = self.init(t0, y0, mode0)
-        st = eqxi.while_loop(
-            lambda s: ~s.done,
+    def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
+        carry = (self.init(t0, y0, mode0), self.init_record(mode0))
+        st, rec = eqxi.while_loop(
+            lambda c: ~c[0].done,
             self.body,
-            st,
+            carry,
             max_steps=self.max_steps + self.max_epochs + 2,
             kind=self.loop_kind,
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
         # The loop's own bound can only be met by executions that are still running.
-        return _stop(st, jnp.array(True), Status.MAX_STEPS)
+        return _stop(st, jnp.array(True), Status.MAX_STEPS), rec

@@ -266,19 +266,19 @@ def simulate(
         checkpoints=checkpoints,
         dtype=dtype,
     )
-    st = loop.run(t0, y0, m0)
+    st, rec = loop.run(t0, y0, m0)
     final_time = st.t
     if throw:
         final_time = st.status.error_if(final_time, st.status != Status.T1_REACHED)
     return Solution(
-        event_times=st.event_times,
+        event_times=rec.event_times,
         num_events=st.num_events,
-        epoch_modes=st.epoch_modes,
-        transitions=st.transitions,
-        states_before=st.states_before,
-        states_after=st.states_after,
-        simultaneous=st.simultaneous,
-        grazing=st.grazing,
+        epoch_modes=rec.epoch_modes,
+        transitions=rec.transitions,
+        states_before=rec.states_before,
+        states_after=rec.states_after,
+        simultaneous=rec.simultaneous,
+        grazing=rec.grazing,
         zeno_time=st.zeno_time,
         zeno_state=st.zeno_state,
         final_time=final_time,

@@ -13,23 +13,19 @@ Reference: A. D. Ames, H. Zheng, R. D. Gregg, S. Sastry, "Is there life after Ze
 import jax.numpy as jnp
 
 
-def detect_zeno(event_times, states_after, num_events, t1, *, window: int, ratio_tol: float,
-                max_ratio: float):
-    """(is_zeno, t_inf, x_inf) from the recorded events (the last is at index num_events - 1)."""
-    w = window
-    idx = num_events - 1 - jnp.arange(w + 1, -1, -1)  # w + 2 most recent events, oldest first
-    valid = num_events >= w + 2
-    safe_idx = jnp.maximum(idx, 0)
-    T = event_times[safe_idx]
+def detect_zeno(recent_times, recent_states, t1, *, window: int, ratio_tol: float, max_ratio: float):
+    """(is_zeno, t_inf, x_inf) from the last `window + 2` event times and last 3 post-event
+    states, oldest first (inf where fewer events have happened)."""
+    T = recent_times
     L = jnp.diff(T)
-    ok = valid & jnp.all(jnp.isfinite(T)) & jnp.all(L > 0)
+    ok = jnp.all(jnp.isfinite(T)) & jnp.all(L > 0)
     L_safe = jnp.where(ok, L, 1.0)
     r = L_safe[1:] / L_safe[:-1]
     r_last = r[-1]
     ok = ok & jnp.all(r > 0) & jnp.all(r <= max_ratio) & jnp.all(jnp.abs(r - r_last) <= ratio_tol * r_last)
     r_safe = jnp.where(ok, r_last, 0.5)
     t_inf = T[-1] + L_safe[-1] * r_safe / (1 - r_safe)
-    X = states_after[safe_idx[-3:]]
+    X = jnp.where(ok, recent_states, 0.0)
     d1, d2 = X[1] - X[0], X[2] - X[1]
     d1_safe = jnp.where(d1 != 0, d1, 1.0)
     rho = d2 / d1_safe
