@@ -56,14 +56,15 @@ def section(res: dict) -> str:
                 out.append(f"| {s} | " + " | ".join(cells) + f" | {comp:.1f} |")
             out.append("")
     out += ["**Against what you would write otherwise** (Tsit5 / RK45 / DOP853, rtol = atol = 1e-9, same run):", "",
-            "| problem | hybridjax | scipy `solve_ivp` loop, RK45 | DOP853 | plain diffrax lock-step loop (`diffrax.Event`) |",
-            "|---|---|---|---|---|"]
+            "| problem | hybridjax | scipy `solve_ivp` loop, RK45 | DOP853 | plain diffrax lock-step loop (`diffrax.Event`) "
+            "| hybridjax, `engine=\"diffrax\"` |",
+            "|---|---|---|---|---|---|"]
     for name, b in res["baselines"].items():
         def c(key, b=b):
             x = b[key]
             return f"{_fmt_rate(x['exec_per_s'])}/s, error {x['error']:.0e} (hybridjax {x['ratio']:.2g}x)"
         out.append(f"| {name} | {_fmt_rate(b['ours_exec_per_s'])}/s | {c('scipy_RK45')} | {c('scipy_DOP853')} | "
-                   f"{c('diffrax_lockstep')} |")
+                   f"{c('diffrax_lockstep')} | {c('engine_diffrax') if 'engine_diffrax' in b else ''} |")
     out += ["", "**Accuracy presets** (`hj.simulate(..., **hj.accuracy_preset(name))`, float64):", "",
             "| preset | " + " | ".join(dict.fromkeys(r["problem"] for r in res["presets"])) + " |",
             "|---|" + "---|" * len(dict.fromkeys(r["problem"] for r in res["presets"]))]

@@ -12,6 +12,7 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
+from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
 from ._loop import Loop
 from ._solution import Solution
 from ._status import Status
@@ -85,6 +86,27 @@ def _prepare_solver(solver, controller, kind: str):
     return solver
 
 
+def _choose_engine(engine: str, solver, controller):
+    """The solver and controller the loop steps with (see `simulate`'s `engine`)."""
+    if engine not in ("auto", "fast", "diffrax"):
+        raise ValueError(f"engine must be 'auto', 'fast' or 'diffrax', got {engine!r}.")
+    if engine == "diffrax":
+        return solver, controller
+    fast_solver, fast_controller = can_unroll(solver), can_use_fast_controller(controller)
+    if engine == "fast" and not (fast_solver and fast_controller):
+        why = (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, "
+               "Bosh3, Tsit5, Dopri5, Dopri8" if not fast_solver else
+               f"stepsize_controller {controller!r} is not a PIDController with default "
+               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax, "
+               "step_ts or jump_ts")
+        raise ValueError(f"engine='fast': {why}; use engine='diffrax' (or 'auto').")
+    if fast_solver:
+        solver = UnrolledERK(solver)
+    if fast_controller:
+        controller = FastIController(controller)
+    return solver, controller
+
+
 def _default_controller(dtype) -> diffrax.PIDController:
     tol = 1e-8 if dtype == jnp.float64 else 1e-5
     return diffrax.PIDController(rtol=tol, atol=tol)
@@ -153,6 +175,7 @@ def simulate(
     zeno_ratio_tol: float = 0.05,
     zeno_max_ratio: float = 0.99,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    engine: str = "auto",
     throw: bool = False,
 ) -> Solution:
     r"""Simulate one execution of `system` from `(x0, mode0)` at `t0` until `t1` or a stop.
@@ -203,6 +226,13 @@ def simulate(
       the limit through the mode's `ZenoCompletion` and continues.
     - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode), `ForwardMode()`
       (forward mode) or `DirectAdjoint()` (both): selects the kind of while loop.
+    - `engine`: how each step is computed. `"diffrax"`: diffrax's own `solver.step` and
+      `stepsize_controller.adapt_step_size`. `"fast"`: the same step from the solver's Butcher
+      tableau with the stages unrolled, and the same I-controller rule written out (requires
+      one of Heun, Midpoint, Ralston, Bosh3, Tsit5, Dopri5, Dopri8 and a
+      `PIDController` with default coefficients and no dtmin/dtmax/step_ts/jump_ts); the
+      same steps to rounding, ~2-4x faster under `vmap`. `"auto"` (default): `"fast"` where
+      it applies, `"diffrax"` otherwise.
     - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
 
     !!! Example
@@ -241,6 +271,7 @@ def simulate(
     if event_tol is None:
         event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
     _warn_unreachable_tolerance(controller, dtype)
+    solver, controller = _choose_engine(engine, solver, controller)
 
     y0 = _initial_state(system, x0_arr, mode0, dtype)
     m0 = as_mode_index(system, mode0)

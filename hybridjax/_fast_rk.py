@@ -1,0 +1,163 @@
+"""A fast explicit Runge-Kutta step with diffrax's interface, for the epoch loop.
+
+diffrax's `AbstractRungeKutta.step` is general (pytrees of terms and tableaus, implicit stages,
+SDEs) and runs its stages in a (checkpointed) scan. Inside the epoch loop under `vmap`, that
+generality is paid every iteration for every execution. `UnrolledERK` computes the same step
+for an ODE with a flat state, from the same Butcher tableau (diffrax's, not retyped):
+
+    k_i = h F(t0 + c_i h, y0 + sum_{j<i} a_ij k_j),   y1 = y0 + sum_i b_i k_i,
+    err = sum_i b^err_i k_i,
+
+with the stages unrolled in Python, so that XLA fuses each stage's arithmetic into a few
+kernels over the whole batch; zero tableau entries are skipped at trace time. FSAL methods
+(Tsit5, Dopri5, Bosh3) reuse the last stage as the next step's first, as diffrax does. The
+dense output is diffrax's own interpolation class for the solver, fed the same `k`.
+
+`FastIController` is diffrax's `PIDController` step-size rule for its default coefficients
+(an I controller: pcoeff = dcoeff = 0, icoeff = 1) without the bookkeeping its general form
+carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
+
+    e = RMS_i( err_i / (atol + rtol max(|y0_i|, |y1_i|)) ),   keep = e <= 1,
+    factor = clip(safety e^(-1/(q+1)), [1 if keep else factormin, factormax if keep else safety]),
+
+q the solver's error order. `engine="auto"` uses both where they give diffrax's steps exactly.
+"""
+
+from typing import Any
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jax import lax
+
+# Explicit RK solvers whose `tableau` the unrolled step reproduces (diffrax classes, not
+# subclasses a user might have changed the step of).
+UNROLLED_SOLVERS = (diffrax.Heun, diffrax.Midpoint, diffrax.Ralston, diffrax.Bosh3,
+                    diffrax.Tsit5, diffrax.Dopri5, diffrax.Dopri8)
+
+
+def can_unroll(solver) -> bool:
+    """Whether `UnrolledERK` reproduces `solver`'s step (an explicit RK with a plain tableau)."""
+    return type(solver) in UNROLLED_SOLVERS and isinstance(
+        getattr(type(solver), "tableau", None), diffrax.ButcherTableau
+    )
+
+
+def can_use_fast_controller(controller) -> bool:
+    """Whether `FastIController` reproduces `controller`'s steps (a default-coefficient PID)."""
+    if type(controller) is not diffrax.PIDController:
+        return False
+    c = controller
+    try:
+        plain = (c.pcoeff == 0 and c.icoeff == 1 and c.dcoeff == 0 and c.dtmin is None
+                 and c.dtmax is None and getattr(c, "step_ts", None) is None
+                 and getattr(c, "jump_ts", None) is None)
+        plain = bool(plain)
+    except jax.errors.ConcretizationTypeError:  # traced coefficients: the general controller
+        return False
+    return plain and c.norm is optx.rms_norm
+
+
+class UnrolledERK:
+    """`solver`'s step with its stages unrolled; otherwise the diffrax solver (init, interpolation,
+    error order are delegated to it)."""
+
+    def __init__(self, solver: diffrax.AbstractERK):
+        if not can_unroll(solver):
+            raise TypeError(f"UnrolledERK: {type(solver).__name__} is not a plain explicit RK solver.")
+        self.solver = solver
+        tab = type(solver).tableau
+        self.c = [float(x) for x in tab.c]
+        self.a = [[float(x) for x in row] for row in tab.a_lower]
+        self.b_sol = [float(x) for x in tab.b_sol]
+        self.b_err = [float(x) for x in tab.b_error]
+        self.fsal = bool(tab.fsal)
+        self.ssal = bool(tab.ssal)
+        self.interpolation_cls = solver.interpolation_cls
+        self.term_structure = solver.term_structure
+
+    def __getattr__(self, name):
+        return getattr(self.solver, name)
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+    def init(self, terms, t0, t1, y0, args):
+        return self.solver.init(terms, t0, t1, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        h = t1 - t0
+        dtype = y0.dtype
+
+        def vf(t, y):
+            return terms.vf(t, y, args)
+
+        def combo(coeffs, ks):
+            out = None
+            for w, k in zip(coeffs, ks, strict=True):
+                if w != 0.0:
+                    term = jnp.asarray(w, dtype) * k
+                    out = term if out is None else out + term
+            return jnp.zeros_like(y0) if out is None else out
+
+        if self.fsal:
+            _, f_prev = solver_state
+            # After a jump (or at the start) the stored last stage is stale: evaluate f0.
+            f0 = jnp.where(made_jump, vf(t0, y0), f_prev)
+        else:
+            f0 = vf(t0, y0)
+        ks = [f0 * h]
+        z = y0
+        f_last = f0
+        for c_i, a_i in zip(self.c, self.a, strict=True):
+            z = y0 + combo(a_i, ks)
+            f_last = vf(t0 + c_i * h, z)
+            ks.append(f_last * h)
+        y1 = z if self.ssal else y0 + combo(self.b_sol, ks)
+        y_err = combo(self.b_err, ks)
+        dense_info = dict(y0=y0, y1=y1, k=jnp.stack(ks))
+        new_state = (jnp.array(False), f_last) if self.fsal else None
+        return y1, y_err, dense_info, new_state, diffrax.RESULTS.successful
+
+
+class FastIController:
+    """diffrax's `PIDController(pcoeff=0, icoeff=1, dcoeff=0)` step rule, without its general
+    machinery; `init` is diffrax's (Hairer's initial step), delegated."""
+
+    def __init__(self, controller: diffrax.PIDController):
+        if not can_use_fast_controller(controller):
+            raise TypeError("FastIController: only a default-coefficient PIDController.")
+        self.controller = controller
+        self.rtol = controller.rtol
+        self.atol = controller.atol
+
+    def __getattr__(self, name):
+        return getattr(self.controller, name)
+
+    def init(self, *a, **k):
+        return self.controller.init(*a, **k)
+
+    def adapt_step_size(self, t0, t1, y0, y1, args, y_err, error_order, controller_state) -> Any:
+        c = self.controller
+        dtype = y0.dtype
+        error_order = c._get_error_order(error_order)
+        y1 = jnp.where(jnp.isnan(y1).any(), y0, y1)
+        scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y0), jnp.abs(y1))
+        e = lax.stop_gradient(jnp.sqrt(jnp.mean(jnp.square(y_err / scale))))
+        keep = e < 1
+        factor = c.safety * (1 / e) ** (1 / error_order)
+        lo = jnp.where(keep, 1.0, c.factormin)
+        hi = jnp.where(keep, c.factormax, c.safety)
+        factor = lax.stop_gradient(jnp.clip(factor, lo, hi))
+        dt = (t1 - t0) * factor.astype(dtype)
+        next_t0 = jnp.where(keep, t1, t0)
+        next_t1 = next_t0 + dt
+        return keep, next_t0, next_t1, jnp.array(False), controller_state, diffrax.RESULTS.successful
+

@@ -1,0 +1,139 @@
+"""The fast engine (unrolled explicit RK step, written-out I controller) against diffrax's own.
+
+Truths: diffrax's `solver.step` and `PIDController.adapt_step_size` for the pieces, and the
+diffrax engine (itself tested against closed forms throughout the suite) for whole runs.
+"""
+
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+from hybridjax import examples
+from hybridjax._fast_rk import FastIController, UnrolledERK
+
+from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL
+
+SOLVERS = [diffrax.Heun(), diffrax.Midpoint(), diffrax.Ralston(), diffrax.Bosh3(),
+           diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()]
+
+
+def _terms():
+    # A nonlinear, time-dependent field so that every stage's c_i and a_ij matter.
+    return diffrax.ODETerm(lambda t, y, a: jnp.stack([y[1] * jnp.cos(t), -a * jnp.sin(y[0]) + t * y[1]]))
+
+
+@pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__)
+def test_unrolled_step_equals_diffrax_step(solver):
+    terms, fast = _terms(), UnrolledERK(solver)
+    y0, t0, t1, a = jnp.array([0.3, -1.2]), 0.4, 0.47, 2.0
+    for made_jump in (True, False):
+        state = solver.init(terms, t0, t1, y0, a)
+        if state is not None:  # FSAL: a stored last stage that a jump must not reuse
+            state = (state[0], terms.vf(t0, y0, a) if not made_jump else 1e3 + state[1])
+        want = solver.step(terms, t0, t1, y0, a, state, jnp.array(made_jump))
+        got = fast.step(terms, t0, t1, y0, a, state, jnp.array(made_jump))
+        for w, g in zip(want[:2], got[:2], strict=True):  # y1, error estimate
+            np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(got[2]["k"], want[2]["k"], rtol=1e-13, atol=1e-15)
+        if state is not None:
+            np.testing.assert_allclose(got[3][1], want[3][1], rtol=1e-13, atol=1e-15)
+    # Its dense output is diffrax's interpolation of the same stages.
+    assert fast.interpolation_cls == solver.interpolation_cls
+
+
+def test_fast_controller_equals_diffrax_pid_controller():
+    rng = np.random.default_rng(1)
+    pid = diffrax.PIDController(rtol=1e-7, atol=1e-9)
+    fast = FastIController(pid)
+    state = pid.init(_terms(), 0.0, 1.0, jnp.ones(2), 0.1, 1.0, None, 5)[1]
+    for _ in range(200):
+        y0, y1 = rng.normal(size=2), rng.normal(size=2)
+        err = rng.normal(size=2) * 10.0 ** rng.uniform(-12, -5)
+        t0, h = rng.uniform(0, 10), 10.0 ** rng.uniform(-6, 0)
+        want = pid.adapt_step_size(t0, t0 + h, y0, y1, None, err, 5, state)
+        got = fast.adapt_step_size(t0, t0 + h, jnp.asarray(y0), jnp.asarray(y1), None, jnp.asarray(err),
+                                   5, state)
+        assert bool(got[0]) == bool(want[0])
+        np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-14)
+
+
+def _pair(system, x0, mode0, t1, args, **kw):
+    run = lambda engine: hj.simulate(system, x0, mode0, 0.0, t1, args, engine=engine, **kw)  # noqa: E731
+    return run("fast"), run("diffrax")
+
+
+CASES = {
+    "bouncing ball": (BALL, [1.0, 0.3], "flight", 3.0, BALL_ARGS),
+    "thermostat": (THERMO, [19.0], "off", 40.0, dict(a=0.1, T_amb=5.0, P_heat=2.5, P_cool=2.0, s=20.0)),
+    "wall particle": (WALL, [0.0, 1.0, 1.5, 3.0], "flight", 3.0, {"g": 9.8, "w": 2.0, "c": 0.7}),
+    "ceiling ball": (CEILING, [0.0, 7.0], "flight", 1.0, {"g": 9.8, "H": 2.0}),
+    "rimless wheel": (examples.rimless_wheel(), [0.1, 0.6], 0, 4.0, {"alpha": 0.3, "gamma": 0.08}),
+    "pendulum wall": (examples.pendulum_wall(), [-0.5, 0.8], "swing", 9.0, {"theta_w": 0.2, "e": 0.7}),
+    "truncated ball": (examples.truncated_ball(), [1.0, 0.0], "flight", 4.0,
+                       {"g": 9.8, "e": 1 / math.sqrt(2), "v_min": 0.05}),
+    "van der pol relay": (examples.van_der_pol_relay(), [-1.0, 0.5], 0, 10.0, 5.0),
+    "stiff relay, mild": (examples.stiff_relay(), [0.0, 0.0], 0, 5.0, 20.0),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_fast_engine_agrees_with_diffrax_engine_on_every_example(name):
+    system, x0, mode0, t1, args = CASES[name]
+    fast, ref = _pair(system, jnp.asarray(x0), mode0, t1, args, stepsize_controller=TIGHT,
+                      saveat=jnp.linspace(0.0, t1, 7))
+    assert fast.status == ref.status
+    n = int(ref.num_events)
+    assert n >= 1 and int(fast.num_events) == n
+    np.testing.assert_array_equal(fast.transitions, ref.transitions)
+    np.testing.assert_allclose(fast.event_times[:n], ref.event_times[:n], rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(fast.final_state, ref.final_state, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(fast.ys, ref.ys, rtol=1e-8, atol=1e-9)
+    # the same steps: the same controller rule on the same error estimates (to rounding)
+    assert abs(int(fast.num_steps) - int(ref.num_steps)) <= max(2, int(ref.num_steps) // 50)
+
+
+@pytest.mark.parametrize("solver", [diffrax.Bosh3(), diffrax.Dopri5(), diffrax.Dopri8()],
+                         ids=lambda s: type(s).__name__)
+def test_fast_engine_with_other_tableaus_matches_the_closed_form(solver):
+    ref = examples.bouncing_ball_closed_form(1.0, 0.3, 9.8, 0.8, 3.0)
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.3]), "flight", 0.0, 3.0, BALL_ARGS, solver=solver,
+                      stepsize_controller=TIGHT, engine="fast")
+    n = len(ref["event_times"])
+    assert int(sol.num_events) == n
+    np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], atol=1e-8)
+    np.testing.assert_allclose(sol.final_state, ref["final_state"], atol=1e-7)
+
+
+def test_fast_engine_gradient_matches_diffrax_engine():
+    def final_height(x0, engine):
+        return hj.simulate(BALL, x0, "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT,
+                           engine=engine).final_state[0]
+
+    x0 = jnp.array([1.0, 0.3])
+    g_fast = jax.grad(final_height)(x0, "fast")
+    g_ref = jax.grad(final_height)(x0, "diffrax")
+    np.testing.assert_allclose(g_fast, g_ref, rtol=1e-7, atol=1e-9)
+
+
+def test_engine_choice_errors_and_fallback():
+    x0 = jnp.array([1.0, 0.0])
+    with pytest.raises(ValueError, match="Kvaerno5"):
+        hj.simulate(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, solver=diffrax.Kvaerno5(), engine="fast")
+    with pytest.raises(ValueError, match="PIDController"):
+        hj.simulate(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="fast",
+                    stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.4, icoeff=0.3))
+    with pytest.raises(ValueError, match="engine must be"):
+        hj.simulate(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
+    from hybridjax._simulate import _choose_engine
+
+    # "auto" keeps diffrax's step where the fast one does not apply, and takes it where it does.
+    kv, pid = diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-6, atol=1e-6)
+    s, c = _choose_engine("auto", kv, pid)
+    assert s is kv and isinstance(c, FastIController)
+    s, c = _choose_engine("auto", diffrax.Tsit5(), diffrax.ConstantStepSize())
+    assert isinstance(s, UnrolledERK) and isinstance(c, diffrax.ConstantStepSize)
