@@ -62,7 +62,7 @@ def section(res: dict) -> str:
     for name, b in res["baselines"].items():
         def c(key, b=b):
             x = b[key]
-            return f"{_fmt_rate(x['exec_per_s'])}/s, error {x['error']:.0e} (hybridjax {x['ratio']:.2g}x)"
+            return f"{_fmt_rate(x['exec_per_s'])}/s, error {x['error']:.0e} (hybridjax {x['ratio']:.3g}x)"
         out.append(f"| {name} | {_fmt_rate(b['ours_exec_per_s'])}/s | {c('scipy_RK45')} | {c('scipy_DOP853')} | "
                    f"{c('diffrax_lockstep')} | {c('engine_diffrax') if 'engine_diffrax' in b else ''} |")
     out += ["", "**Accuracy presets** (`hj.simulate(..., **hj.accuracy_preset(name))`, float64):", "",

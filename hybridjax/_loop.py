@@ -51,6 +51,8 @@ from ._status import Status
 from ._zeno import detect_zeno
 
 sg = lax.stop_gradient
+# Save times evaluated one by one when no execution has more than this many in a step.
+SAVE_WINDOW = 16
 
 
 class LoopState(eqx.Module):
@@ -87,12 +89,12 @@ class LoopState(eqx.Module):
     zeno_state: jax.Array
     recent_times: jax.Array  # the last zeno_window + 2 event times, oldest first (Zeno test)
     recent_states: jax.Array  # the last 3 post-event states
-    ys: jax.Array
-    saved_modes: jax.Array
 
 
 class EventRecord(eqx.Module):
-    """The events of one execution, padded to max_epochs (inf / -1 / False)."""
+    """The events of one execution, padded to max_epochs (inf / -1 / False), and its saved
+    states (inf / -1 where not reached). Kept out of `LoopState`: both are long, and the
+    per-execution selects of an iteration would otherwise copy them several times."""
 
     event_times: jax.Array
     transitions: jax.Array
@@ -101,6 +103,8 @@ class EventRecord(eqx.Module):
     epoch_modes: jax.Array
     simultaneous: jax.Array
     grazing: jax.Array
+    ys: jax.Array
+    saved_modes: jax.Array
 
 
 def _select(pred, a, b):
@@ -185,10 +189,6 @@ class Loop:
         _, controller_state = self.controller.init(
             self.terms, t0, self.t1, y0, self.dt0, args_ext, self.solver.func, self.error_order()
         )
-        ts = self.save_ts
-        at_t0 = ts <= t0
-        ys = jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dt)
-        saved_modes = jnp.where(at_t0, mode0, -1).astype(jnp.int32)
         return LoopState(
             t=t0,
             y=y0,
@@ -218,8 +218,6 @@ class Loop:
             zeno_state=jnp.full((n,), jnp.inf, dt),
             recent_times=jnp.full((self.recent,), jnp.inf, dt),
             recent_states=jnp.full((3, n), jnp.inf, dt),
-            ys=ys,
-            saved_modes=saved_modes,
         )
 
     # ----------------------------------------------------------------- jump
@@ -254,9 +252,12 @@ class Loop:
             ),
         )
 
-    def init_record(self, mode0) -> EventRecord:
+    def init_record(self, t0, y0, mode0) -> EventRecord:
         E, n, dt = self.max_epochs, self.kern.n, self.dtype
+        at_t0 = self.save_ts <= t0
         return EventRecord(
+            ys=jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dt),
+            saved_modes=jnp.where(at_t0, mode0, -1).astype(jnp.int32),
             event_times=jnp.full((E,), jnp.inf, dt),
             transitions=jnp.full((E,), -1, jnp.int32),
             states_before=jnp.full((E, n), jnp.inf, dt),
@@ -278,14 +279,19 @@ class Loop:
                 m = mask.reshape(mask.shape + (1,) * (arr.ndim - 1))
                 return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
 
-            rec = EventRecord(
-                event_times=put(rec.event_times, st.pend_time[slot]),
-                transitions=put(rec.transitions, st.pend_transition[slot]),
-                states_before=put(rec.states_before, st.pend_before[slot]),
-                states_after=put(rec.states_after, st.pend_after[slot]),
-                epoch_modes=put(rec.epoch_modes, st.pend_target[slot], row_m),
-                simultaneous=put(rec.simultaneous, st.pend_simultaneous[slot]),
-                grazing=put(rec.grazing, st.pend_grazing[slot]),
+            rec = eqx.tree_at(
+                lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
+                           r.epoch_modes, r.simultaneous, r.grazing),
+                rec,
+                (
+                    put(rec.event_times, st.pend_time[slot]),
+                    put(rec.transitions, st.pend_transition[slot]),
+                    put(rec.states_before, st.pend_before[slot]),
+                    put(rec.states_after, st.pend_after[slot]),
+                    put(rec.epoch_modes, st.pend_target[slot], row_m),
+                    put(rec.simultaneous, st.pend_simultaneous[slot]),
+                    put(rec.grazing, st.pend_grazing[slot]),
+                ),
             )
         return rec
 
@@ -393,7 +399,9 @@ class Loop:
         return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
 
     # ----------------------------------------------------------------- one step
-    def step_stage(self, st: LoopState) -> LoopState:
+    def step_stage(self, st: LoopState):
+        """One step; returns the new state and `save`, which writes this step's saved states
+        into an `EventRecord`."""
         active = ~st.done & ~st.at_start
         # Executions that do not step here still compute a step (vmap); their inputs get no
         # gradient, so a NaN in their discarded results cannot reach one (double where).
@@ -506,25 +514,43 @@ class Loop:
             interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
             t_ev, y_before, grazing = self.event_point(mode, k, t_star, interp_e, args_e)
 
-        # save: requested times inside (t, t_end], t_end the event time or the step's end.
-        ys, saved_modes = st.ys, st.saved_modes
-        if self.save_ts.shape[0]:
+        # save: requested times inside (t, t_end], t_end the event time or the step's end;
+        # applied to the record by `body` (see `EventRecord`).
+        def save(rec: EventRecord) -> EventRecord:
+            if not self.save_ts.shape[0]:
+                return rec
             t_end = jnp.where(any_event, t_star, sg(t_next))
             mask = keep & active & (self.save_ts > sg(t)) & (self.save_ts <= t_end)
 
-            def save(ys):
+            def put_all(ys):
                 vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
                 return jnp.where(mask[:, None], vals, ys)
 
+            def put_few(ys):
+                # The save times in a step are consecutive, from index i0: evaluate the
+                # interpolant at SAVE_WINDOW of them (not at all S), then place row s from
+                # window slot s - i0 with one gather.
+                S = self.save_ts.shape[0]
+                i0 = jnp.argmax(mask)
+                idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
+                tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
+                vals = jax.vmap(interp.evaluate)(tt)
+                slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
+                return jnp.where(mask[:, None], vals[slot], ys)
+
+            def put(ys):
+                few = eqxi.unvmap_max(jnp.sum(mask)) <= SAVE_WINDOW
+                return lax.cond(few, put_few, put_all, ys)
+
             # Most steps of most executions contain no save time: skip the interpolation then.
-            ys = lax.cond(eqxi.unvmap_any(mask), save, lambda ys: ys, ys)
-            saved_modes = jnp.where(mask, mode, saved_modes)
+            ys = lax.cond(eqxi.unvmap_any(mask), put, lambda ys: ys, rec.ys)
+            saved_modes = jnp.where(mask, mode, rec.saved_modes)
+            return eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, saved_modes))
 
         counted = eqx.tree_at(
-            lambda s: (s.dt, s.controller_state, s.num_steps, s.num_rejected, s.ys, s.saved_modes),
+            lambda s: (s.dt, s.controller_state, s.num_steps, s.num_rejected),
             st,
-            (dt_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32),
-             ys, saved_modes),
+            (dt_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32)),
         )
         accepted = eqx.tree_at(
             lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
@@ -553,7 +579,7 @@ class Loop:
         halted = _stop(counted, jnp.array(True), Status.NONFINITE)
         new = _select(stuck | (keep & ~finite_G), halted, progressed)
         new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
-        return _select(active, new, st_all)
+        return _select(active, new, st_all), save
 
     def event_point(self, mode, k, t_star, interp, args):
         """The event time and pre-event state, differentiable by the implicit function theorem.
@@ -581,13 +607,13 @@ class Loop:
     # ----------------------------------------------------------------- the loop
     def body(self, carry):
         st, rec = carry
-        new = self.step_stage(self.start_stage(st))
+        new, save = self.step_stage(self.start_stage(st))
         new = _select(st.done, st, new)
-        rec = self.flush(rec, new)
+        rec = self.flush(save(rec), new)
         return eqx.tree_at(lambda s: s.pend_count, new, jnp.zeros_like(new.pend_count)), rec
 
     def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
-        carry = (self.init(t0, y0, mode0), self.init_record(mode0))
+        carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
         st, rec = eqxi.while_loop(
             lambda c: ~c[0].done,
             self.body,

@@ -137,3 +137,19 @@ def test_engine_choice_errors_and_fallback():
     assert s is kv and isinstance(c, FastIController)
     s, c = _choose_engine("auto", diffrax.Tsit5(), diffrax.ConstantStepSize())
     assert isinstance(s, UnrolledERK) and isinstance(c, diffrax.ConstantStepSize)
+
+
+@pytest.mark.parametrize("num_saves", [7, 400])  # a few per step, and more than SAVE_WINDOW per step
+def test_saved_states_match_free_flight_and_a_bounce(num_saves):
+    # h0 = 1, v0 = 0: free fall until sqrt(2/g), then the rebound at e = 0.8 (closed form).
+    ts = np.linspace(0.0, 0.6, num_saves)
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 0.6, BALL_ARGS, stepsize_controller=TIGHT,
+                      saveat=jnp.asarray(ts))
+    t_hit = math.sqrt(2 / 9.8)
+    v_up = 0.8 * 9.8 * t_hit
+    s = np.maximum(ts - t_hit, 0.0)
+    h = np.where(ts < t_hit, 1.0 - 4.9 * ts**2, v_up * s - 4.9 * s**2)
+    v = np.where(ts < t_hit, -9.8 * ts, v_up - 9.8 * s)
+    np.testing.assert_allclose(sol.ys[:, 0], h, atol=1e-9)
+    np.testing.assert_allclose(sol.ys[:, 1], np.where(ts == t_hit, -9.8 * t_hit, v), atol=1e-8)
+    assert np.all(np.asarray(sol.saved_modes) == 0)
