@@ -17,10 +17,11 @@ dense output is diffrax's own interpolation class for the solver, fed the same `
 (an I controller: pcoeff = dcoeff = 0, icoeff = 1) without the bookkeeping its general form
 carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
 
-    e = RMS_i( err_i / (atol + rtol max(|y0_i|, |y1_i|)) ),   keep = e <= 1,
-    factor = clip(safety e^(-1/(q+1)), [1 if keep else factormin, factormax if keep else safety]),
+    e = RMS_i( err_i / (atol + rtol max(|y0_i|, |y1_i|)) ),   keep = e < 1,
+    factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),
 
-q the solver's error order. `engine="auto"` uses both where they give diffrax's steps exactly.
+q the solver's error order (its order + 1 for an ODE, as diffrax counts it). `engine="auto"`
+uses both where they give diffrax's steps exactly.
 """
 
 from typing import Any
@@ -74,23 +75,9 @@ class UnrolledERK:
         self.b_err = [float(x) for x in tab.b_error]
         self.fsal = bool(tab.fsal)
         self.ssal = bool(tab.ssal)
-        self.interpolation_cls = solver.interpolation_cls
-        self.term_structure = solver.term_structure
 
-    def __getattr__(self, name):
+    def __getattr__(self, name):  # init, func, error_order, interpolation_cls, ...
         return getattr(self.solver, name)
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)
-
-    def init(self, terms, t0, t1, y0, args):
-        return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
@@ -135,14 +122,9 @@ class FastIController:
         if not can_use_fast_controller(controller):
             raise TypeError("FastIController: only a default-coefficient PIDController.")
         self.controller = controller
-        self.rtol = controller.rtol
-        self.atol = controller.atol
 
-    def __getattr__(self, name):
+    def __getattr__(self, name):  # init, rtol, atol, ...
         return getattr(self.controller, name)
-
-    def init(self, *a, **k):
-        return self.controller.init(*a, **k)
 
     def adapt_step_size(self, t0, t1, y0, y1, args, y_err, error_order, controller_state) -> Any:
         c = self.controller

@@ -51,7 +51,8 @@ from ._status import Status
 from ._zeno import detect_zeno
 
 sg = lax.stop_gradient
-# Save times evaluated one by one when no execution has more than this many in a step.
+# Save rows interpolated as a window when every execution's rows in a step lie within this many
+# consecutive indices (all rows otherwise).
 SAVE_WINDOW = 16
 
 
@@ -105,6 +106,14 @@ class EventRecord(eqx.Module):
     grazing: jax.Array
     ys: jax.Array
     saved_modes: jax.Array
+
+
+def _put_rows(arr, rows, value):
+    """`arr` with the rows where `rows` (bool, arr.shape[0]) is True set to `value`: a masked
+    write, no scatter (under vmap a scatter with one index per execution is a serial loop on
+    CPU)."""
+    m = rows.reshape(rows.shape + (1,) * (arr.ndim - 1))
+    return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
 
 
 def _select(pred, a, b):
@@ -226,8 +235,7 @@ class Loop:
         slot = jnp.arange(2) == st.pend_count
 
         def put(arr, value):
-            m = slot.reshape(slot.shape + (1,) * (arr.ndim - 1))
-            return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
+            return _put_rows(arr, slot, value)
 
         return eqx.tree_at(
             lambda s: (
@@ -268,16 +276,14 @@ class Loop:
         )
 
     def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
-        """Write the pending events of this iteration into the record (masked, no scatter:
-        under vmap a scatter with one index per execution is a serial loop on CPU)."""
+        """Write the pending events of this iteration into the record (`_put_rows`)."""
         E = self.max_epochs
         for slot in range(2):
             i = jnp.where(slot < st.pend_count, st.pend_at[slot], E + 1)
             row, row_m = jnp.arange(E) == i, jnp.arange(E + 1) == i + 1
 
             def put(arr, value, mask=row):
-                m = mask.reshape(mask.shape + (1,) * (arr.ndim - 1))
-                return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
+                return _put_rows(arr, mask, value)
 
             rec = eqx.tree_at(
                 lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
@@ -524,22 +530,24 @@ class Loop:
 
             def put_all(ys):
                 vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
-                return jnp.where(mask[:, None], vals, ys)
+                return _put_rows(ys, mask, vals)
+
+            S = self.save_ts.shape[0]
+            i0 = jnp.argmax(mask)  # the first save row in this step
+            span = jnp.where(jnp.any(mask), S - jnp.argmax(mask[::-1]) - i0, 0)
 
             def put_few(ys):
-                # The save times in a step are consecutive, from index i0: evaluate the
-                # interpolant at SAVE_WINDOW of them (not at all S), then place row s from
+                # Every execution's save rows in this step lie in i0 .. i0 + SAVE_WINDOW - 1:
+                # evaluate the interpolant there (not at all S rows), then place row s from
                 # window slot s - i0 with one gather.
-                S = self.save_ts.shape[0]
-                i0 = jnp.argmax(mask)
                 idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
                 tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
                 vals = jax.vmap(interp.evaluate)(tt)
                 slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
-                return jnp.where(mask[:, None], vals[slot], ys)
+                return _put_rows(ys, mask, vals[slot])
 
             def put(ys):
-                few = eqxi.unvmap_max(jnp.sum(mask)) <= SAVE_WINDOW
+                few = eqxi.unvmap_max(span) <= SAVE_WINDOW
                 return lax.cond(few, put_few, put_all, ys)
 
             # Most steps of most executions contain no save time: skip the interpolation then.

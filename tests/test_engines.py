@@ -139,10 +139,14 @@ def test_engine_choice_errors_and_fallback():
     assert isinstance(s, UnrolledERK) and isinstance(c, diffrax.ConstantStepSize)
 
 
-@pytest.mark.parametrize("num_saves", [7, 400])  # a few per step, and more than SAVE_WINDOW per step
-def test_saved_states_match_free_flight_and_a_bounce(num_saves):
+# a few save times per step, more than SAVE_WINDOW per step, and unsorted (rows of one step
+# scattered over the array)
+@pytest.mark.parametrize("num_saves, order", [(7, "sorted"), (400, "sorted"), (30, "shuffled")])
+def test_saved_states_match_free_flight_and_a_bounce(num_saves, order):
     # h0 = 1, v0 = 0: free fall until sqrt(2/g), then the rebound at e = 0.8 (closed form).
     ts = np.linspace(0.0, 0.6, num_saves)
+    if order == "shuffled":
+        ts = np.random.default_rng(2).permutation(ts)
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 0.6, BALL_ARGS, stepsize_controller=TIGHT,
                       saveat=jnp.asarray(ts))
     t_hit = math.sqrt(2 / 9.8)
