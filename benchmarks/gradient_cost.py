@@ -1,9 +1,11 @@
 """Cost of a gradient through the epoch loop relative to the forward solve, and memory.
 
 Bouncing ball (e = 0.8, h0 ~ U(0.5, 1.5), v0 ~ U(-1, 1), T = 2.5, Tsit5, rtol = atol = 1e-9,
-float64). For batch sizes 1 and 1,000: forward solve; reverse mode (jax.grad of the summed
-final state w.r.t. x0 and e, checkpointed loop); forward mode (jax.jacfwd, ForwardMode loop).
-Then the compiled temporary memory of reverse mode against the number of epochs.
+float64). For batch sizes 1 and 1,000, with `jax.vmap(hj.simulate)` and with the batched engine
+(`hj.simulate_batch`): forward solve; reverse mode (jax.grad of the summed final state w.r.t.
+x0 and e, checkpointed loop); forward mode (every execution's 2 x 3 Jacobian w.r.t. (x0, e) by
+jax.jacfwd, ForwardMode loop). Then the compiled temporary memory of reverse mode against the
+number of epochs.
 
     python benchmarks/gradient_cost.py          # prints tables, writes results/gradient_cost.json
 """
@@ -28,6 +30,22 @@ def make(t1, max_epochs, adjoint):
     return final
 
 
+def make_batch(adjoint):
+    def final(x0, e):
+        return hj.simulate_batch(BALL, x0, "flight", 0.0, 2.5, {"g": jnp.full_like(e, 9.8), "e": e},
+                                 args_batched=True, stepsize_controller=CTRL, max_epochs=32,
+                                 adjoint=adjoint).final_state
+    return final
+
+
+def batched_jacobians(x0, e):
+    """(N, 2, 3): each execution's Jacobian of its final state w.r.t. (h0, v0, e). Executions are
+    independent, so three forward-mode tangents (the same direction in every execution) give
+    every execution's Jacobian at once."""
+    final = make_batch(diffrax.ForwardMode())
+    return jax.jacfwd(lambda c: final(x0 + c[:2], e + c[2]))(jnp.zeros(3))
+
+
 def main():
     rng = np.random.default_rng(0)
     rows = []
@@ -38,16 +56,23 @@ def main():
         rev = jax.jit(jax.vmap(jax.grad(lambda x, e: jnp.sum(make(2.5, 32, diffrax.RecursiveCheckpointAdjoint())(x, e)),
                                         argnums=(0, 1))))
         fwd = jax.jit(jax.vmap(jax.jacfwd(make(2.5, 32, diffrax.ForwardMode()), argnums=(0, 1))))
-        c0, t0, _ = timed(fwd_solve, x0, e)
-        c1, t1, _ = timed(rev, x0, e)
-        c2, t2, _ = timed(fwd, x0, e)
-        rows.append(dict(batch=n, forward_s=t0, reverse_s=t1, jacfwd_s=t2, reverse_ratio=t1 / t0,
-                         jacfwd_ratio=t2 / t0, compile_forward_s=c0, compile_reverse_s=c1, compile_jacfwd_s=c2))
+        b_solve = jax.jit(make_batch(diffrax.RecursiveCheckpointAdjoint()))
+        b_rev = jax.jit(jax.grad(lambda x, e: jnp.sum(make_batch(diffrax.RecursiveCheckpointAdjoint())(x, e)),
+                                 argnums=(0, 1)))
+        b_fwd = jax.jit(batched_jacobians)
+        for engine, (f0, f1, f2) in (("vmap(simulate)", (fwd_solve, rev, fwd)),
+                                     ("simulate_batch", (b_solve, b_rev, b_fwd))):
+            c0, t0, _ = timed(f0, x0, e)
+            c1, t1, _ = timed(f1, x0, e)
+            c2, t2, _ = timed(f2, x0, e)
+            rows.append(dict(engine=engine, batch=n, forward_s=t0, reverse_s=t1, jacfwd_s=t2, reverse_ratio=t1 / t0,
+                             jacfwd_ratio=t2 / t0, compile_forward_s=c0, compile_reverse_s=c1,
+                             compile_jacfwd_s=c2))
     print("gradient cost relative to the forward solve (bouncing ball, T = 2.5, ~5 events)")
-    print(f"{'batch':>6} {'forward s':>10} {'grad (rev) s':>13} {'ratio':>6} {'jacfwd s':>9} {'ratio':>6}"
+    print(f"{'engine':>15} {'batch':>6} {'forward s':>10} {'grad (rev) s':>13} {'ratio':>6} {'jacfwd s':>9} {'ratio':>6}"
           f" {'compile f/r/fwd s':>18}")
     for r in rows:
-        print(f"{r['batch']:>6} {r['forward_s']:>10.4f} {r['reverse_s']:>13.4f} {r['reverse_ratio']:>6.1f}"
+        print(f"{r['engine']:>15} {r['batch']:>6} {r['forward_s']:>10.4f} {r['reverse_s']:>13.4f} {r['reverse_ratio']:>6.1f}"
               f" {r['jacfwd_s']:>9.4f} {r['jacfwd_ratio']:>6.1f}   {r['compile_forward_s']:.1f}/"
               f"{r['compile_reverse_s']:.1f}/{r['compile_jacfwd_s']:.1f}")
 

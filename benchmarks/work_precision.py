@@ -7,8 +7,11 @@ For problems A-D (`problems.py`), all measured in one run on this machine:
   stiff D) and tolerance (rtol = atol = 1e-3 ... 1e-12), in float64 and float32; executions
   whose number of events differs from the truth are counted apart ("wrong");
 - event tolerance: problem A at rtol = 1e-9 for event_tol = 1e-4 ... 1e-12;
+- hybridjax is `jax.jit(hj.simulate_batch)` (the batched engine for the explicit RK solvers,
+  `vmap(simulate)` for the implicit ones);
 - baselines at Tsit5, rtol = atol = 1e-9: scipy `solve_ivp` (RK45 and DOP853) in a Python loop
-  over epochs, and a plain diffrax lock-step loop (`_baselines.py`), reported as ratios;
+  over epochs, a plain diffrax lock-step loop (`_baselines.py`), and hybridjax's per-execution
+  engine under `jax.vmap` (fast step and diffrax's step), reported as ratios;
 - throughput against the batch size (A, 1 ... 100,000) and against the number of modes and
   guards (a ring of M modes);
 - the accuracy presets (`hj.accuracy_preset`) on A, B, C.
@@ -48,18 +51,23 @@ _RUNNERS = {}
 
 
 def runner(problem, solver_name, dtype=jnp.float64, max_steps=20_000, engine="auto"):
-    """jit(vmap(simulate)) with rtol = atol and event_tol traced: one compile per solver/dtype."""
+    """jit(simulate_batch) with rtol = atol and event_tol traced: one compile per solver/dtype.
+
+    engine: "auto" (`simulate_batch`: the batched engine for explicit RK solvers), "vmap"
+    (`jax.vmap(simulate)`), "diffrax" (`jax.vmap(simulate(..., engine="diffrax"))`)."""
     key = (problem.name, solver_name, jnp.dtype(dtype).name, engine)
     if key not in _RUNNERS:
         solver = SOLVERS[solver_name]()
 
         @jax.jit
         def run(x0, mode0, tol, event_tol):
-            ctrl = diffrax.PIDController(rtol=tol, atol=tol)
+            kw = dict(solver=solver, stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+                      max_epochs=problem.max_epochs, max_steps=max_steps, event_tol=event_tol)
+            if engine == "auto":
+                return hj.simulate_batch(problem.system, x0, mode0, 0.0, problem.t1, problem.args, **kw)
             return jax.vmap(lambda x, m: hj.simulate(
-                problem.system, x, m, 0.0, problem.t1, problem.args, solver=solver, stepsize_controller=ctrl,
-                max_epochs=problem.max_epochs, max_steps=max_steps, event_tol=event_tol,
-                engine=engine))(x0, mode0)
+                problem.system, x, m, 0.0, problem.t1, problem.args,
+                engine="auto" if engine == "vmap" else engine, **kw))(x0, mode0)
 
         _RUNNERS[key] = run
     return _RUNNERS[key]
@@ -146,12 +154,42 @@ def baselines(problem, truths, x0, m0, n_scipy, n_lockstep, ours_per_s):
     err, wrong = errors(problem, truths[:n_lockstep], res[2], res[1])
     out["diffrax_lockstep"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
                                    compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
-    # hybridjax with diffrax's own solver.step / adapt_step_size instead of the fast engine
-    c, run_s, res = timed_run(runner(problem, "Tsit5", engine="diffrax"), xa, ma, 1e-9, 1e-12)
-    err, wrong = errors(problem, truths[:n_lockstep], res.final_state, res.num_events)
-    out["engine_diffrax"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
-                                 compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
+    if problem.name.startswith("A"):
+        cf = ball_closed_form_jax(problem.max_epochs)
+        c, run_s, res = timed_run(lambda x: cf(x, 9.8, 0.8, problem.t1), xa)
+        err, wrong = errors(problem, truths[:n_lockstep], res[1], res[0])
+        out["closed_form_jax"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
+                                      compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
+    # hybridjax's per-execution engine under vmap (with its fast RK step, and with diffrax's own
+    # solver.step / adapt_step_size)
+    for key, engine in (("engine_vmap", "vmap"), ("engine_diffrax", "diffrax")):
+        c, run_s, res = timed_run(runner(problem, "Tsit5", engine=engine), xa, ma, 1e-9, 1e-12)
+        err, wrong = errors(problem, truths[:n_lockstep], res.final_state, res.num_events)
+        out[key] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
+                        compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
     return out
+
+
+def ball_closed_form_jax(max_events: int):
+    """The ball's closed form (`examples.bouncing_ball_closed_form`) jitted over a batch: the
+    speed limit of problem A (no integration, no root finding)."""
+
+    @jax.jit
+    def run(x0, g, e, t1):
+        h0, v0 = x0[:, 0], x0[:, 1]
+        w = jnp.sqrt(v0 * v0 + 2 * g * h0)
+        t = (v0 + w) / g
+        t_last, v_last, h_last, count = jnp.zeros_like(t), v0, h0, jnp.zeros(t.shape, jnp.int32)
+        for _ in range(max_events):
+            hit = t <= t1
+            t_last, v_last = jnp.where(hit, t, t_last), jnp.where(hit, e * w, v_last)
+            h_last, count = jnp.where(hit, 0.0, h_last), count + hit
+            w = jnp.where(hit, e * w, w)
+            t = jnp.where(hit, t + 2 * w / g, t)
+        dt = t1 - t_last
+        return count, jnp.stack([h_last + v_last * dt - 0.5 * g * dt * dt, v_last - g * dt], 1)
+
+    return run
 
 
 def ring(M: int) -> hj.HybridSystem:
@@ -183,8 +221,8 @@ def throughput(quick):
 
         @jax.jit
         def run(x0, sys=sys):
-            return jax.vmap(lambda x: hj.simulate(sys, x, 0, 0.0, 10.0, stepsize_controller=diffrax.PIDController(
-                rtol=1e-9, atol=1e-9), max_epochs=32))(x0)
+            return hj.simulate_batch(sys, x0, 0, 0.0, 10.0, stepsize_controller=diffrax.PIDController(
+                rtol=1e-9, atol=1e-9), max_epochs=32)
 
         x0 = jnp.asarray(np.random.default_rng(2).uniform(0, 0.5, (n, 1)))
         c, run_s, out = timed_run(run, x0)
@@ -311,7 +349,10 @@ def main():
             print(f"{prob.name}: baselines (Tsit5 / RK45 / DOP853 at 1e-9)", flush=True)
             b = baselines(prob, tr, x0, m0, max(int(n_scipy * scale), 2), max(int(n_lock * scale), 10), ours_rate)
             results["baselines"][prob.name] = b
-            for key in ("scipy_RK45", "scipy_DOP853", "diffrax_lockstep", "engine_diffrax"):
+            for key in ("scipy_RK45", "scipy_DOP853", "diffrax_lockstep", "engine_vmap", "engine_diffrax",
+                        "closed_form_jax"):
+                if key not in b:
+                    continue
                 print(f"  {key:>17}: {b[key]['exec_per_s']:9.1f}/s error {b[key]['error']:8.1e} wrong {b[key]['wrong']}"
                       f"  -> hybridjax is {b[key]['ratio']:.2f}x", flush=True)
     print("event tolerance (A, Tsit5, rtol = 1e-9)", flush=True)

@@ -17,6 +17,7 @@ from ._saltation import VariationalJacobian as VariationalJacobian
 from ._saltation import saltation_matrix as saltation_matrix
 from ._saltation import variational_jacobian as variational_jacobian
 from ._simulate import simulate as simulate
+from ._simulate_batch import simulate_batch as simulate_batch
 from ._solution import Epoch as Epoch
 from ._solution import Solution as Solution
 from ._status import STATUS_NAMES as STATUS_NAMES

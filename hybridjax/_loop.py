@@ -590,27 +590,8 @@ class Loop:
         return _select(active, new, st_all), save
 
     def event_point(self, mode, k, t_star, interp, args):
-        """The event time and pre-event state, differentiable by the implicit function theorem.
-
-        With t* found without gradients and x*(theta) = interpolant(t*), the returned time is
-        t* - (g(t*, x*) - [g]) / [D_t g + D_x g F] and the state x* + F (t - t*), [.] meaning
-        stop_gradient: equal in value to (t*, x*), with dt = -dg / gdot and dx = dx* + F dt.
-        Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
-        (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
-        ill-conditioned.
-        """
-        kern = self.kern
-        x_star = interp.evaluate(t_star)
-        F = kern.flow(mode, t_star, x_star, args)
-        g = lambda tt, xx: kern.guards(mode, tt, xx, args)[k]  # noqa: E731
-        g_val = g(t_star, x_star)
-        gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
-        gdot = sg(gt + gx @ sg(F))  # dg/dt along the true vector field
-        size = jnp.abs(gt) + jnp.linalg.norm(gx) * jnp.linalg.norm(sg(F))
-        grazing = jnp.abs(gdot) <= jnp.cbrt(self.eps) * size
-        safe = jnp.where(gdot != 0, gdot, 1.0)
-        t_ev = t_star - (g_val - sg(g_val)) / safe
-        return t_ev, x_star + F * (t_ev - t_star), grazing
+        """See `event_point`."""
+        return event_point(self.kern, self.eps, mode, k, t_star, interp, args)
 
     # ----------------------------------------------------------------- the loop
     def body(self, carry):
@@ -632,3 +613,29 @@ class Loop:
         )
         # The loop's own bound can only be met by executions that are still running.
         return _stop(st, jnp.array(True), Status.MAX_STEPS), rec
+
+
+def event_point(kern, eps, mode, k, t_star, interp, args):
+    """The event time and pre-event state, differentiable by the implicit function theorem.
+
+    With t* found without gradients and x*(theta) = interpolant(t*), the returned time is
+    t* - (g(t*, x*) - [g]) / [D_t g + D_x g F] and the state x* + F (t - t*), [.] meaning
+    stop_gradient: equal in value to (t*, x*), with dt = -dg / gdot and dx = dx* + F dt.
+    Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
+    (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
+    ill-conditioned.
+    """
+    x_star = interp.evaluate(t_star)
+    F = kern.flow(mode, t_star, x_star, args)
+
+    def g(tt, xx):
+        return kern.guards(mode, tt, xx, args)[k]
+
+    g_val = g(t_star, x_star)
+    gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
+    gdot = sg(gt + jnp.sum(gx * sg(F)))  # dg/dt along the true vector field (no dot: vmap)
+    size = jnp.abs(gt) + jnp.linalg.norm(gx) * jnp.linalg.norm(sg(F))
+    grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
+    safe = jnp.where(gdot != 0, gdot, 1.0)
+    t_ev = t_star - (g_val - sg(g_val)) / safe
+    return t_ev, x_star + F * (t_ev - t_star), grazing

@@ -1,7 +1,8 @@
 """Monte Carlo over many executions: chunked, sharded across devices, streamed to the host.
 
-Each chunk of executions is one call of a jitted `vmap(simulate)`, its batch axis sharded over
-`jax.devices()` with `jax.sharding` (GPUs, or host devices forced with
+Each chunk of executions is one call of a jitted `simulate_batch` (the batched engine, or
+`vmap(simulate)` where it does not apply), its batch axis sharded over `jax.devices()`
+with `jax.sharding` (GPUs, or host devices forced with
 `XLA_FLAGS=--xla_force_host_platform_device_count=N`). After each chunk only small
 per-execution results (status, events, final time/mode/state, Zeno time) come back to the
 host, and running summaries are updated, so memory stays bounded however many executions run;
@@ -24,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._simulate import simulate
+from ._simulate_batch import simulate_batch
 from ._status import STATUS_NAMES
 from ._system import HybridSystem
 
@@ -154,8 +155,9 @@ def monte_carlo(
 
     Returns a `MonteCarloResult`: per-execution results (unless `keep="summary"`), the
     fraction of executions per status with 95% Wilson intervals, Zeno-time and event-count
-    statistics, timings. `simulate_kwargs` go to `simulate` (solver, tolerances, max_epochs,
-    Zeno options...).
+    statistics, timings. `simulate_kwargs` go to `simulate_batch` (solver, tolerances,
+    max_epochs, Zeno options, `engine`...): each chunk runs on the batched engine where it
+    applies (explicit RK solvers), else as `jax.vmap(simulate)`.
     """
     if keep not in ("all", "summary"):
         raise ValueError(f"keep must be 'all' or 'summary', got {keep!r}.")
@@ -176,12 +178,13 @@ def monte_carlo(
     batch_sharding = NamedSharding(mesh, PartitionSpec("batch"))
     mode_index = system.mode_index(mode0)
 
-    def one(x, a):
-        sol = simulate(system, x, mode_index, t0, t1, a, **simulate_kwargs)
+    def run_chunk(x, a):
+        sol = simulate_batch(system, x, mode_index, t0, t1, a, args_batched=a is not None,
+                             **simulate_kwargs)
         return dict(status=sol.status_code, num_events=sol.num_events, final_time=sol.final_time,
                     final_mode=sol.final_mode, final_state=sol.final_state, zeno_time=sol.zeno_time)
 
-    run_chunk = jax.jit(jax.vmap(one))
+    run_chunk = jax.jit(run_chunk)
 
     def chunk_inputs(c: int, m: int):
         if sampler is not None:

@@ -128,7 +128,7 @@ def _warn_unreachable_tolerance(controller, dtype) -> None:
             f"rtol={rtol:g} is below what {jnp.dtype(dtype).name} resolves "
             f"(8 eps = {floor:.1e}); the solver cannot honour it. Use rtol >= {floor:.0e}, "
             "or float64 (jax.config.update('jax_enable_x64', True) and float64 x0).",
-            stacklevel=3,
+            stacklevel=4,
         )
 
 
@@ -151,6 +151,39 @@ def _initial_state(system: HybridSystem, x0, mode0, dtype) -> jax.Array:
             f"length {n} (the largest mode dimension)."
         )
     return x0 if m == n else jnp.concatenate([x0, jnp.zeros((n - m,), dtype)])
+
+
+def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, max_epochs,
+                     max_steps, event_tol, interior_points, max_zero_epochs, zeno_window,
+                     zeno_max_ratio, adjoint):
+    """Validate `simulate`'s options; returns (dtype, loop kind, checkpoints, solver,
+    controller, event_tol) with the defaults filled in (`args` of one execution)."""
+    if not isinstance(system, HybridSystem):
+        raise TypeError(f"system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
+    for name, value, low in (
+        ("max_epochs", max_epochs, 1),
+        ("max_steps", max_steps, 1),
+        ("interior_points", interior_points, 0),
+        ("max_zero_epochs", max_zero_epochs, 0),
+        ("zeno_window", zeno_window, 1),
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
+    dtype = jnp.result_type(x0_arr.dtype, jnp.float32)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
+    system.check(args, dtype)
+    kind, checkpoints = _loop_kind(adjoint)
+    controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
+    solver = _prepare_solver(solver, controller, kind)
+    if dt0 is None and not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
+        raise ValueError(f"{type(controller).__name__} needs dt0 (no error estimate to pick one).")
+    if not 0 < zeno_max_ratio < 1:
+        raise ValueError(f"zeno_max_ratio must be in (0, 1), got {zeno_max_ratio!r}.")
+    if event_tol is None:
+        event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
+    _warn_unreachable_tolerance(controller, dtype)
+    return dtype, kind, checkpoints, solver, controller, event_tol
 
 
 def simulate(
@@ -245,32 +278,12 @@ def simulate(
         sol.event_times[:3]   # impacts at sqrt(2 h0 / g) (1 + 2 e + 2 e^2 + ...)
         ```
     """
-    if not isinstance(system, HybridSystem):
-        raise TypeError(f"system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
-    for name, value, low in (
-        ("max_epochs", max_epochs, 1),
-        ("max_steps", max_steps, 1),
-        ("interior_points", interior_points, 0),
-        ("max_zero_epochs", max_zero_epochs, 0),
-        ("zeno_window", zeno_window, 1),
-    ):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-            raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
     x0_arr = jnp.asarray(x0)
-    dtype = jnp.result_type(x0_arr.dtype, jnp.float32)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
-    system.check(args, dtype)
-    kind, checkpoints = _loop_kind(adjoint)
-    controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
-    solver = _prepare_solver(solver, controller, kind)
-    if dt0 is None and not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        raise ValueError(f"{type(controller).__name__} needs dt0 (no error estimate to pick one).")
-    if not 0 < zeno_max_ratio < 1:
-        raise ValueError(f"zeno_max_ratio must be in (0, 1), got {zeno_max_ratio!r}.")
-    if event_tol is None:
-        event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
-    _warn_unreachable_tolerance(controller, dtype)
+    dtype, kind, checkpoints, solver, controller, event_tol = _checked_options(
+        system, x0_arr, args, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
+        max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
+        interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
+        zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
     solver, controller = _choose_engine(engine, solver, controller)
 
     y0 = _initial_state(system, x0_arr, mode0, dtype)

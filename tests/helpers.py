@@ -18,6 +18,14 @@ WALL = examples.wall_particle()
 CEILING = examples.ceiling_ball()
 
 
+def line_system(domain=None, guard=None):
+    """x' = 1 in mode m (domain 1 - x >= 0 if given), optional guard 1 - x to mode 'done'."""
+    m = hj.Mode("m", lambda t, x, p: jnp.ones_like(x), dim=1, domain=domain)
+    done = hj.Mode("done", lambda t, x, p: jnp.zeros_like(x), dim=1)
+    trs = [] if guard is None else [hj.Transition("m", "done", guard=guard)]
+    return hj.HybridSystem([m, done], trs)
+
+
 def tree_allclose(a, b, rtol=1e-8, atol=1e-8) -> bool:
     leaves = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
         lambda x, y: np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol), a, b))

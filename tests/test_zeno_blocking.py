@@ -15,7 +15,7 @@ import pytest
 import hybridjax as hj
 from hybridjax import examples
 
-from helpers import BALL, TIGHT
+from helpers import BALL, TIGHT, line_system
 
 
 def test_seed_ball_is_zeno_at_the_closed_form_time():
@@ -84,16 +84,8 @@ def test_completion_definition_errors():
                         completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x)])
 
 
-def _line(domain=None, guard=None):
-    """x' = 1 in mode m (domain 1 - x >= 0 if given), optional guard 1 - x to mode 'done'."""
-    m = hj.Mode("m", lambda t, x, p: jnp.ones_like(x), dim=1, domain=domain)
-    done = hj.Mode("done", lambda t, x, p: jnp.zeros_like(x), dim=1)
-    trs = [] if guard is None else [hj.Transition("m", "done", guard=guard)]
-    return hj.HybridSystem([m, done], trs)
-
-
 def test_domain_exit_without_a_guard_blocks_at_the_exit():
-    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0])
+    sys_ = line_system(domain=lambda t, x, p: 1.0 - x[0])
     sol = hj.simulate(sys_, jnp.array([0.25]), "m", 0.0, 2.0, stepsize_controller=TIGHT)
     assert sol.status == hj.Status.BLOCKED
     np.testing.assert_allclose(sol.final_time, 0.75, atol=1e-8)
@@ -101,7 +93,7 @@ def test_domain_exit_without_a_guard_blocks_at_the_exit():
 
 
 def test_domain_exit_covered_by_a_guard_transitions():
-    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0], guard=lambda t, x, p: 1.0 - x[0])
+    sys_ = line_system(domain=lambda t, x, p: 1.0 - x[0], guard=lambda t, x, p: 1.0 - x[0])
     sol = hj.simulate(sys_, jnp.array([0.25]), "m", 0.0, 2.0, stepsize_controller=TIGHT)
     assert sol.status == hj.Status.T1_REACHED and int(sol.final_mode) == 1
     np.testing.assert_allclose(sol.event_times[0], 0.75, atol=1e-8)
@@ -120,7 +112,7 @@ def test_reset_outside_the_target_domain_blocks():
 
 
 def test_initial_state_outside_the_domain_blocks_at_t0():
-    sys_ = _line(domain=lambda t, x, p: 1.0 - x[0])
+    sys_ = line_system(domain=lambda t, x, p: 1.0 - x[0])
     sol = hj.simulate(sys_, jnp.array([1.5]), "m", 0.0, 2.0)
     assert sol.status == hj.Status.BLOCKED and float(sol.final_time) == 0.0
 

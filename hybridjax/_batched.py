@@ -1,0 +1,659 @@
+"""The batched engine: N executions in one loop, their state as structure of arrays.
+
+`Loop` (`_loop.py`) is one execution; `jax.vmap` makes a batch of it, which stores every array
+as (N, ...) and turns each per-execution selection into a copy of the whole state. Here the
+batch is explicit and *lanes-last*: the state is (n, N), one contiguous vector per component,
+so that the Runge-Kutta stages, the error norm, the step-size rule and the guard samples fuse
+into a few loops over the batch. Each iteration, every execution ("lane") that is still running
+either starts an epoch or takes one step, as in `Loop`, with the same semantics:
+
+- the work every step needs (stages, controller, guard samples on the dense output, crossing
+  and dip detection) is written on the lanes-last arrays, each field updated once per
+  iteration under a lane mask;
+- the work only some lanes need (the epoch-start test with its Lie derivatives and Hairer's
+  first step; root and minimum location, the implicit-function event point and the reset)
+  runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
+  block of N/4 and scattered back (lanes beyond the block wait an iteration: a step whose
+  event is not located yet is taken again, identically, in the next);
+- events are written into the max_epochs-long record by one scatter per iteration.
+
+The per-lane pieces (`_events`, `Kernels`, diffrax's interpolation and initial step) are the
+ones `Loop` uses, so both engines make the same decisions; `tests/test_engines.py` holds them
+to each other. The dense output at the guard samples uses weights w(theta) with
+y(theta) = a y0 + b y1 + sum_i c_i k_i, read off diffrax's own interpolation (it is linear in
+y0, y1, k) once at trace time.
+"""
+
+import diffrax
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax import lax
+
+from ._events import (
+    departure_step_bound,
+    locate_minimum,
+    locate_root,
+    start_decision,
+)
+from ._kernels import Kernels, mask_inputs
+from ._loop import event_point
+from ._status import Status
+from ._zeno import detect_zeno
+
+sg = lax.stop_gradient
+
+
+class Lanes(eqx.Module):
+    """The running state of N executions, lanes last (see `LoopState` for the fields)."""
+
+    t: jax.Array  # (N,)
+    y: jax.Array  # (n, N)
+    mode: jax.Array
+    h: jax.Array
+    f0: jax.Array  # (n, N): F at (t, y), the first stage of the next step
+    at_start: jax.Array
+    done: jax.Array
+    status: jax.Array  # (N,) int32: `Status` codes
+    g_prev: jax.Array  # (W, N)
+    num_events: jax.Array
+    zero_run: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array  # (n, N)
+    recent_times: jax.Array  # (R, N)
+    recent_states: jax.Array  # (3, n, N)
+    save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
+
+
+class LaneRecord(eqx.Module):
+    """The events of N executions: one float array (N, E, 5 + 2n), a row per event holding
+    [time, transition, target mode, simultaneous, grazing, x(t^-) (n), x(t^+) (n)], so that
+    an iteration's events are written by one scatter of contiguous rows."""
+
+    rows: jax.Array
+    ys: jax.Array  # (N, S, n) saved states
+    saved_modes: jax.Array  # (N, S)
+
+    def fields(self, mode0, n: int) -> dict:
+        """The `Solution` fields (lanes first)."""
+        r = self.rows
+        target = r[..., 2].astype(jnp.int32)
+        return dict(
+            event_times=r[..., 0], transitions=r[..., 1].astype(jnp.int32),
+            epoch_modes=jnp.concatenate([mode0[:, None], target], axis=1),
+            simultaneous=r[..., 3] > 0, grazing=r[..., 4] > 0,
+            states_before=r[..., 5:5 + n], states_after=r[..., 5 + n:],
+            ys=self.ys, saved_modes=self.saved_modes,
+        )
+
+
+def _stop(st: Lanes, pred, status: Status) -> Lanes:
+    pred = pred & ~st.done
+    return eqx.tree_at(lambda s: (s.done, s.status), st,
+                       (st.done | pred, jnp.where(pred, status._value, st.status)))
+
+
+def as_status(codes) -> Status:
+    """A `Status` item holding the integer codes `codes` (one per lane)."""
+    return eqx.tree_at(lambda s: s._value, Status.T1_REACHED, jnp.asarray(codes, jnp.int32))
+
+
+def _fold(op, x):
+    """Reduce over the leading axis by a Python loop of elementwise ops: XLA:CPU runs a
+    reduction over the outer axis of a (small, N) array several times slower than the
+    same sum written out (which also fuses with its inputs)."""
+    if x.shape[0] > 64:
+        return {jnp.add: jnp.sum, jnp.logical_and: jnp.all, jnp.logical_or: jnp.any}[op](x, axis=0)
+    out = x[0]
+    for i in range(1, x.shape[0]):
+        out = op(out, x[i])
+    return out
+
+
+def _rows_all(x):
+    return _fold(jnp.logical_and, x)
+
+
+def _rows_any(x):
+    return _fold(jnp.logical_or, x)
+
+
+def _combo(weights, ks, like):
+    """sum_i w_i k_i over the nonzero weights (skipped at trace time)."""
+    out = None
+    for w, k in zip(weights, ks, strict=True):
+        if w != 0.0:
+            term = jnp.asarray(w, like.dtype) * k
+            out = term if out is None else out + term
+    return jnp.zeros_like(like) if out is None else out
+
+
+def _detect(g_prev, G_e, D_e, times):
+    """`first_crossings` and `dip_candidates` of `_events`, lanes last, the sample axis unrolled.
+
+    `G_e`, `D_e`: guard values and slopes at the step's start, interior points and end (lists
+    of (W, N)); `times` the sample times ((N,) each). Returns (has, j, suspect, i_d, x0_d), (W, N).
+    """
+    has = jnp.zeros(g_prev.shape, bool)
+    j = jnp.zeros(g_prev.shape, jnp.int32)
+    prev = g_prev
+    for i, g in enumerate(G_e[1:]):
+        cross = (g <= 0) & (prev > 0)
+        j = jnp.where(cross & ~has, i, j)
+        has = has | cross
+        prev = g
+    V = [g_prev, *G_e[1:]]
+    suspect = jnp.zeros(g_prev.shape, bool)
+    i_d = jnp.zeros(g_prev.shape, jnp.int32)
+    x0_d = jnp.broadcast_to(times[0], g_prev.shape)
+    for i in range(len(V) - 1):
+        V0, V1, D0, D1 = V[i], V[i + 1], D_e[i], D_e[i + 1]
+        D0 = jnp.where(jnp.isfinite(D0), D0, 0.0)
+        D1 = jnp.where(jnp.isfinite(D1), D1, 0.0)
+        h = times[i + 1] - times[i]
+        shape = (V0 > 0) & (V1 > 0) & (D0 < 0) & (D1 > 0)
+        den = jnp.where(shape, D0 - D1, -1.0)
+        u = jnp.clip((V1 - V0 - D1 * h) / den, 0.0, h)
+        cand = shape & (V0 + D0 * u <= 0)
+        first = cand & ~suspect
+        i_d = jnp.where(first, i, i_d)
+        x0_d = jnp.where(first, times[i] + u, x0_d)
+        suspect = suspect | cand
+    return has, j, suspect, i_d, x0_d
+
+
+def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
+    """Weights of the solver's dense output on the unit interval at the fractions `thetas`.
+
+    Returns `(value, slope)`, each a list of (a, b, [c_i]) with
+    y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
+    are linear in y0, y1 and the stage increments k_i); computed once, at trace time.
+    """
+
+    def value(th, y0, y1, k):
+        one = jnp.ones((), dtype)
+        return interpolation_cls(t0=0 * one, t1=one, y0=y0, y1=y1, k=k).evaluate(th)
+
+    def slope(th, y0, y1, k):
+        return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
+
+    out = []
+    with jax.ensure_compile_time_eval():
+        z, zk = jnp.zeros((1,), dtype), jnp.zeros((num_stages, 1), dtype)
+        for fn in (value, slope):
+            rows = []
+            for th in thetas:
+                ja, jb, jc = jax.jacobian(fn, argnums=(1, 2, 3))(jnp.asarray(th, dtype), z, z, zk)
+                rows.append((float(ja[0, 0]), float(jb[0, 0]), [float(v) for v in np.asarray(jc)[0, :, 0]]))
+            out.append(rows)
+    return out
+
+
+SAVE_WINDOW = 16  # sorted save times interpolated per pass
+CHEB_DEGREE = 9  # >= the degree in theta of every unrolled solver's dense output
+
+
+def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = CHEB_DEGREE):
+    """The solver's dense output y(theta) on the unit interval in the Chebyshev basis:
+    y(theta) = sum_m T_m(2 theta - 1) (A_m0 y0 + A_m1 y1 + sum_i A_m(2+i) k_i), exact for
+    polynomials of degree <= `degree` (the discrete Chebyshev transform at degree + 1 nodes,
+    well conditioned where monomial coefficients are not). Returns A as nested lists."""
+    nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
+    value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
+    W = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
+    T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
+    A = (2.0 / (degree + 1)) * T @ W
+    A[0] /= 2
+    return A.tolist()
+
+
+class ChebyshevDense(eqx.Module):
+    """One lane's dense output as a Chebyshev series in x = 2 theta - 1 (Clenshaw's
+    recurrence): the same polynomial as diffrax's interpolation, evaluated without the small
+    matrix products that vmap turns into batched dots."""
+
+    t0: jax.Array
+    t1: jax.Array
+    coeffs: jax.Array  # (degree + 1, n)
+
+    @classmethod
+    def from_stages(cls, A, t0, t1, y0, y1, ks):
+        rows = [jnp.asarray(r[0], y0.dtype) * y0 + jnp.asarray(r[1], y0.dtype) * y1
+                + _combo(r[2:], list(ks), y0) for r in A]
+        return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
+
+    def evaluate(self, t):
+        span = self.t1 - self.t0
+        theta = jnp.where(span == 0, 0.0, (t - self.t0) / jnp.where(span == 0, 1.0, span))
+        x = 2 * theta - 1
+        b1, b2 = jnp.zeros_like(self.coeffs[0]), jnp.zeros_like(self.coeffs[0])
+        for c in self.coeffs[:0:-1]:
+            b1, b2 = 2 * x * b1 - b2 + c, b1
+        return x * b1 - b2 + self.coeffs[0]
+
+
+class BatchedLoop:
+    """The loop for N executions of one system; `run(t0, y0, mode0)` with lanes-last inputs."""
+
+    def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
+                 max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
+                 zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int, block: int | None = None,
+                 save_ts=None):
+        lane_args = args if args_axis is None else jtu.tree_map(lambda a: a[0], args)
+        self.kern = Kernels(system, lane_args, dtype)
+        self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
+        self.solver, self.controller, self.dt0 = solver, controller, dt0
+        self.max_epochs, self.max_steps = max_epochs, max_steps
+        self.interior_points, self.event_tol = interior_points, event_tol
+        self.max_zero_epochs, self.zeno = max_zero_epochs, zeno
+        self.recent = (zeno["window"] + 2) if zeno is not None else 2
+        self.loop_kind, self.checkpoints, self.dtype = loop_kind, checkpoints, dtype
+        self.eps = jnp.finfo(dtype).eps
+        self.N = lanes
+        self.save_ts = jnp.zeros((0,), dtype) if save_ts is None else save_ts
+        self.save_order = jnp.argsort(self.save_ts)
+        self.save_sorted = self.save_ts[self.save_order]
+        # Small batches compute the rare work on every lane; large ones on a block of N/4.
+        self.block = (lanes if lanes <= 256 else max(256, lanes // 4)) if block is None else block
+        self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
+        self.error_order = solver.error_order(self.terms)
+        self.rtol, self.atol = controller.rtol, controller.atol
+        m = interior_points
+        self.thetas = np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])
+        self.num_stages = len(solver.c) + 1
+        self.w_value, self.w_slope = dense_weights(solver.interpolation_cls, self.num_stages,
+                                                   self.thetas, dtype)
+        self.cheb = chebyshev_weights(solver.interpolation_cls, self.num_stages, dtype)
+
+    # ------------------------------------------------------------------ helpers
+    def time_tol(self, t, h):
+        """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
+        return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
+
+    def lane_map(self, fn, *tree):
+        """`fn(*tree_i, args_i)` on every lane (lanes last in and out)."""
+        return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, self.args)
+
+    def on_lanes(self, mask, fn, *tree):
+        """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done)`.
+
+        The first `block` lanes in `mask` are gathered into a block, computed and scattered
+        back (`done` marks them; other lanes' outputs are zeros). Lanes beyond the block wait
+        for a later iteration: each function is compiled once, for one block size.
+        """
+        N, M = self.N, self.block
+        if M >= N:
+            return self.lane_map(fn, *tree), mask
+        idx = jnp.nonzero(mask, size=M, fill_value=N)[0]
+        sub = jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
+        sub_args = self.args if self.args_axis is None else jtu.tree_map(
+            lambda a: jnp.take(a, idx, axis=0, mode="clip"), self.args)
+        out = jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*sub, sub_args)
+        out = jtu.tree_map(
+            lambda o: jnp.zeros(o.shape[:-1] + (N,), o.dtype).at[..., idx].set(o, mode="drop"), out)
+        return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop")
+
+    def flows(self, mode, t, y):
+        """F_mode(t, y) on every lane: (n, N)."""
+        return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y)
+
+    # ------------------------------------------------------------------ init
+    def init(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+        N, n, W, E, dt = self.N, self.kern.n, self.kern.num_watch, self.max_epochs, self.dtype
+        st = Lanes(
+            t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dt), f0=jnp.zeros((n, N), dt),
+            at_start=jnp.ones((N,), bool), done=jnp.zeros((N,), bool),
+            status=jnp.full((N,), Status.T1_REACHED._value, jnp.int32),
+            g_prev=jnp.zeros((W, N), dt), num_events=jnp.zeros((N,), jnp.int32),
+            zero_run=jnp.zeros((N,), jnp.int32), num_steps=jnp.zeros((N,), jnp.int32),
+            num_rejected=jnp.zeros((N,), jnp.int32), zeno_time=jnp.full((N,), jnp.inf, dt),
+            zeno_state=jnp.full((n, N), jnp.inf, dt), recent_times=jnp.full((self.recent, N), jnp.inf, dt),
+            recent_states=jnp.full((3, n, N), jnp.inf, dt),
+            save_ptr=jnp.searchsorted(self.save_sorted, t0, side="right").astype(jnp.int32),
+        )
+        at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
+        ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
+        saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
+        empty = jnp.concatenate([jnp.array([jnp.inf, -1.0, -1.0, 0.0, 0.0], dt),
+                                 jnp.full((2 * n,), jnp.inf, dt)])
+        rec = LaneRecord(rows=jnp.broadcast_to(empty, (N, E, 5 + 2 * n)), ys=ys, saved_modes=saved_modes)
+        return st, rec
+
+    # ------------------------------------------------------------------ jump
+    def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
+             grazing, zero_length: bool):
+        """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
+        the caller); then stop on too many epochs, non-finite values, chattering or Zeno."""
+        E, N = self.max_epochs, self.N
+        K = self.kern.num_transitions
+        full = st.num_events >= E
+        kept = mask & ~full
+        finite = _rows_all(jnp.isfinite(y_after))
+        jumped = kept & finite
+        target = self.kern.targets[jnp.clip(k, 0, K - 1)]
+        row = jnp.where(kept, st.num_events, E)  # E: dropped
+        dt = rec.rows.dtype
+        values = jnp.concatenate([
+            jnp.stack([t_ev.astype(dt), k.astype(dt), target.astype(dt), simultaneous.astype(dt),
+                       grazing.astype(dt)]),
+            y_before.astype(dt), y_after.astype(dt)])  # (5 + 2n, N)
+        rec = eqx.tree_at(lambda r: r.rows, rec, rec.rows.at[jnp.arange(N), row].set(values.T, mode="drop"))
+        recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
+        recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
+                                  st.recent_states)
+        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
+        st = eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.zero_run, s.num_events, s.recent_times,
+                       s.recent_states),
+            st,
+            (jnp.where(mask, t_ev, st.t),
+             jnp.where(jumped, y_after, jnp.where(mask, y_before, st.y)),
+             jnp.where(jumped, target, st.mode),
+             st.at_start | jumped,
+             jnp.where(jumped, zero_run, st.zero_run),
+             st.num_events + kept.astype(jnp.int32),
+             recent_times, recent_states),
+        )
+        st = _stop(st, mask & full, Status.MAX_EPOCHS)
+        st = _stop(st, kept & ~finite, Status.NONFINITE)
+        st = _stop(st, jumped & (st.zero_run > self.max_zero_epochs), Status.CHATTERING)
+        if self.zeno is not None:
+            is_zeno, t_inf, x_inf = jax.vmap(
+                lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
+            )(st.recent_times, st.recent_states, self.t1)
+            z = jumped & is_zeno & ~st.done
+            st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
+                             (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
+            st = _stop(st, z, Status.ZENO)
+        return st, rec
+
+    # ------------------------------------------------------------------ start of an epoch
+    def _start_lane(self, t, y, mode, h_prev, t1, args):
+        """One lane's epoch-start test (as `Loop.start_stage`)."""
+        kern, K = self.kern, self.kern.num_transitions
+        ts, ys, a_sg = sg(t), sg(y), sg(args)
+        jets = kern.guard_jets(mode, ts, ys, a_sg, self.rtol, self.atol, self.time_tol(ts, h_prev))
+        outgoing = kern.outgoing_mask(mode)
+        fire, g_start = start_decision(jets, outgoing, self.eps)
+        F = kern.flow(mode, t, y, args)  # with gradients: the next step's first stage
+        finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets["L0"], 0.0)))
+        k = jnp.argmax(fire).astype(jnp.int32) if kern.num_watch else jnp.array(0, jnp.int32)
+        t_init, _ = self.controller.init(self.terms, ts, t1, ys, self.dt0, (mode, a_sg),
+                                         self.solver.func, self.error_order)
+        dt = jnp.minimum(t_init - ts, departure_step_bound(jets, outgoing, fire))
+        any_fire = jnp.any(fire)
+        if K:
+            t_m, y_m, a_m = mask_inputs(any_fire & (k < K), (t, y, args))
+            y_after = kern.reset(jnp.minimum(k, K - 1), t_m, y_m, a_m)
+            simultaneous = jnp.sum(fire[:K]) > 1
+        else:
+            y_after, simultaneous = y, jnp.array(False)
+        return dict(fire=any_fire, k=k, g_start=g_start.astype(self.dtype), F=F, finite=finite,
+                    dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous)
+
+    def start_stage(self, st: Lanes, rec: LaneRecord):
+        active = st.at_start & ~st.done
+
+        def run(carry):
+            st, rec = carry
+            out, handled = self.on_lanes(active, self._start_lane, st.t, st.y, st.mode, st.h, self.t1)
+            active_now = active & handled  # the others stay at the start of their epoch
+            fire = active_now & out["fire"]
+            K = self.kern.num_transitions
+            go = active_now & ~out["fire"]
+            st = eqx.tree_at(
+                lambda s: (s.at_start, s.g_prev, s.h, s.f0), st,
+                (st.at_start & ~go, jnp.where(go, out["g_start"], st.g_prev),
+                 jnp.where(go, out["dt"], st.h), jnp.where(go, out["F"], st.f0)))
+            st = _stop(st, go & (st.t >= self.t1), Status.T1_REACHED)
+            st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
+            if K:
+                st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
+                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True)
+            st = _stop(st, active_now & ~out["finite"], Status.NONFINITE)
+            return st, rec
+
+        return lax.cond(jnp.any(active), run, lambda c: c, (st, rec))
+
+    # ------------------------------------------------------------------ one step
+    def _event_lane(self, t, t_next, y, y1, ks, mode, has, j, suspect, i_d, x0_d, s_ext, h_new, t1,
+                    args):
+        """One lane's first event in its step (as `Loop.step_stage`): dips, root, IFT point,
+        reset; then the next epoch's start test (`_start_lane`) on the reset state, so that the
+        common case (no guard fires at once) needs no separate start stage."""
+        kern, K, W = self.kern, self.kern.num_transitions, self.kern.num_watch
+        interp_sg = ChebyshevDense.from_stages(self.cheb, sg(t), sg(t_next), sg(y), sg(y1), sg(ks))
+        a_sg = sg(args)
+        s = s_ext[1:]
+        tol = self.time_tol(sg(t_next), sg(t_next - t))
+
+        def path(k):
+            return lambda x: kern.guards(mode, x, interp_sg.evaluate(x), a_sg)[k]
+
+        def refine(_):
+            return jax.vmap(lambda k, a, b, x: locate_minimum(path(k), a, b, x, tol))(
+                jnp.arange(W), s_ext[i_d], s_ext[i_d + 1], x0_d)
+
+        x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine,
+                                lambda _: (x0_d, jnp.ones_like(x0_d)), None)
+        dip = suspect & (g_min < 0)
+        a_all = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
+        b_all = jnp.where(dip, x_min, s[j])
+        has = has | dip
+        any_event = jnp.any(has)
+
+        def locate(_):
+            tk = jax.vmap(lambda k, a, b: locate_root(path(k), a, b, tol))(jnp.arange(W), a_all, b_all)
+            tk = jnp.where(has, tk, jnp.inf)
+            first = jnp.argmin(tk)
+            t_min = tk[first]
+            t_at = jnp.where(any_event, t_min, b_all[first])
+            g_at = kern.guards(mode, t_at, interp_sg.evaluate(t_at), a_sg)
+            g_from = kern.guards(mode, a_all[first], interp_sg.evaluate(a_all[first]), a_sg)
+            cand = has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & any_event)
+            k = jnp.argmax(cand).astype(jnp.int32)
+            tk = jnp.where(cand & ~has, t_min, tk)
+            return jnp.where(any_event, tk[k], sg(t_next)), k, jnp.sum(cand) > 1
+
+        t_star, k, simultaneous = lax.cond(
+            eqxi.unvmap_any(any_event), locate,
+            lambda _: (sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)), None)
+        ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
+        interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)
+        t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e)
+        if K:
+            t_r, y_r, a_r = mask_inputs(any_event & (k < K), (t_ev, y_before, args))
+            y_after = kern.reset(jnp.minimum(k, K - 1), t_r, y_r, a_r)
+        else:
+            y_after = y_before
+        target = kern.targets[jnp.clip(k, 0, max(K - 1, 0))] if K else mode
+        nxt = self._start_lane(t_ev, y_after, target, h_new, t1, args)
+        return dict(event=any_event, k=k, t_star=t_star, t_ev=t_ev, y_before=y_before, y_after=y_after,
+                    simultaneous=simultaneous, grazing=grazing, next_fire=nxt["fire"],
+                    next_finite=nxt["finite"], next_g=nxt["g_start"], next_dt=nxt["dt"], next_F=nxt["F"])
+
+    def step_stage(self, st: Lanes, rec: LaneRecord):
+        kern, solver, c = self.kern, self.solver, self.controller
+        W, K = kern.num_watch, kern.num_transitions
+        stepping = ~st.done & ~st.at_start
+        # Lanes that do not step still compute one; their inputs get no gradient (double where).
+        t, y, f0 = mask_inputs(stepping, (st.t, st.y, st.f0))
+        t_next = jnp.minimum(jnp.maximum(t + st.h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), self.t1)
+        hh = t_next - t
+        if not solver.fsal:
+            f0 = self.flows(st.mode, t, y)
+        ks, z, f_last = [f0 * hh], y, f0
+        for c_i, a_i in zip(solver.c, solver.a, strict=True):
+            z = y + _combo(a_i, ks, y)
+            f_last = self.flows(st.mode, t + c_i * hh, z)
+            ks.append(f_last * hh)
+        y1 = z if solver.ssal else y + _combo(solver.b_sol, ks, y)
+        y_err = _combo(solver.b_err, ks, y)
+        # The I controller of `FastIController`, per lane.
+        order = c._get_error_order(self.error_order)
+        finite_y1 = _rows_all(jnp.isfinite(y1))
+        y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
+        scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
+        e = sg(jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0]))
+        keep = (e < 1) & finite_y1
+        factor = sg(jnp.clip(c.safety * (1 / e) ** (1 / order), jnp.where(keep, 1.0, c.factormin),
+                             jnp.where(keep, c.factormax, c.safety)))
+        dt_new = sg(jnp.where(finite_y1, hh * factor.astype(self.dtype), 0.25 * hh))
+
+        counted = eqx.tree_at(
+            lambda s: (s.h, s.num_steps, s.num_rejected), st,
+            (jnp.where(stepping, dt_new, st.h), st.num_steps + stepping.astype(jnp.int32),
+             st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
+        if W:
+            ks_sg = [sg(k) for k in ks]
+            y_sg, y1_sg, hs = sg(y), sg(y1), sg(hh)
+            safe_h = jnp.maximum(hs, jnp.finfo(self.dtype).tiny)
+            samples, slopes, times = [], [], []
+            last = len(self.thetas) - 1
+            for i, th in enumerate(self.thetas):
+                (va, vb, vc), (da, db, dc) = self.w_value[i], self.w_slope[i]
+                samples.append(y_sg if i == 0 else y1_sg if i == last else
+                               va * y_sg + vb * y1_sg + _combo(vc, ks_sg, y_sg))
+                slopes.append((da * y_sg + db * y1_sg + _combo(dc, ks_sg, y_sg)) / safe_h)
+                times.append(sg(t) if i == 0 else sg(t_next) if i == last else sg(t) + hs * float(th))
+
+            def guard_jvp(m, tt, yy, yd, a):
+                return jax.jvp(lambda t_, y_: kern.guards(m, t_, y_, sg(a)), (tt, yy),
+                               (jnp.ones_like(tt), yd))
+
+            pairs = [self.lane_map(guard_jvp, st.mode, tt, yy, yd)
+                     for tt, yy, yd in zip(times, samples, slopes, strict=True)]
+            G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (W, N) each
+            finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
+            ok = keep & finite_G & stepping
+            has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times)
+            has = has & ok
+            suspect = suspect & ok & (~has | (i_d < j))
+            need = _rows_any(has | suspect)
+        else:
+            finite_G = jnp.ones_like(keep)
+        acc = stepping & keep & finite_G
+        new = eqx.tree_at(
+            lambda s: (s.t, s.y, s.f0, s.zero_run), counted,
+            (jnp.where(acc, t_next, counted.t), jnp.where(acc, y1, counted.y),
+             jnp.where(acc, f_last, counted.f0), jnp.where(acc, 0, counted.zero_run)))
+        if W:
+            new = eqx.tree_at(lambda s: s.g_prev, new, jnp.where(acc, G_e[-1], new.g_prev))
+        reached = acc & (t_next >= self.t1)
+        if W:
+            def events(carry):
+                # Lanes with an event in this step: undo the acceptance above, then locate,
+                # jump, and start the next epoch (all only when some lane needs it).
+                new, rec = carry
+                out, handled = self.on_lanes(need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
+                                             st.mode, has, j, suspect, i_d, x0_d, jnp.stack(times),
+                                             dt_new, self.t1)
+                ev = need & handled & out["event"]
+                # Lanes beyond the block take this step again next iteration (same t, h, y:
+                # the same step), as if it had not been tried.
+                waiting = need & ~handled
+                back = ev | waiting
+                new = eqx.tree_at(
+                    lambda s: (s.t, s.y, s.f0, s.g_prev, s.zero_run, s.h, s.num_steps, s.num_rejected), new,
+                    (jnp.where(back, st.t, new.t), jnp.where(back, st.y, new.y),
+                     jnp.where(back, st.f0, new.f0), jnp.where(back, st.g_prev, new.g_prev),
+                     jnp.where(back, st.zero_run, new.zero_run), jnp.where(waiting, st.h, new.h),
+                     jnp.where(waiting, st.num_steps, new.num_steps),
+                     jnp.where(waiting, st.num_rejected, new.num_rejected)))
+                new = _stop(new, reached & ~back, Status.T1_REACHED)
+                blocked = ev & (out["k"] >= K)
+                new = eqx.tree_at(lambda s: (s.t, s.y), new,
+                                  (jnp.where(blocked, out["t_ev"], new.t),
+                                   jnp.where(blocked, out["y_before"], new.y)))
+                new = _stop(new, blocked, Status.BLOCKED)
+                if K:
+                    jumping = ev & (out["k"] < K)
+                    new, rec = self.jump(new, rec, jumping, out["k"], out["t_ev"], out["y_before"],
+                                         out["y_after"], out["simultaneous"], out["grazing"],
+                                         zero_length=False)
+                    # The new epoch's start test was done with the event: where no guard fires
+                    # at once, start it here (the start stage handles the rest next iteration).
+                    go = (jumping & new.at_start & ~new.done & ~out["next_fire"] & out["next_finite"]
+                          & (new.t < self.t1))
+                    new = eqx.tree_at(
+                        lambda s: (s.at_start, s.g_prev, s.h, s.f0), new,
+                        (new.at_start & ~go, jnp.where(go, out["next_g"], new.g_prev),
+                         jnp.where(go, out["next_dt"], new.h), jnp.where(go, out["next_F"], new.f0)))
+                return new, rec, (acc & ~back) | ev, jnp.where(ev, out["t_star"], sg(t_next))
+
+            def no_events(carry):
+                new, rec = carry
+                return _stop(new, reached, Status.T1_REACHED), rec, acc, sg(t_next)
+
+            new, rec, took, t_end = lax.cond(jnp.any(need), events, no_events, (new, rec))
+        else:
+            new = _stop(new, reached, Status.T1_REACHED)
+            took, t_end = acc, sg(t_next)
+        if self.save_ts.shape[0]:
+            new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks)
+        # A non-finite step that cannot be shrunk any further, or non-finite guards on an
+        # accepted step, stop the lane at the step's start, where everything was finite.
+        stuck = ~finite_y1 & (sg(hh) <= 64 * self.eps * jnp.maximum(jnp.abs(sg(t)), sg(hh)))
+        new = _stop(new, stepping & (stuck | (keep & ~finite_G)), Status.NONFINITE)
+        new = _stop(new, stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS)
+        return new, rec
+
+    # ------------------------------------------------------------------ saved states
+    def save(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, y, y1, ks):
+        """Write the save times in (t, t_end] of each lane whose step was taken, from the step's
+        dense output (the pre-event state at an event time), SAVE_WINDOW sorted save times per
+        pass; a bounded loop of passes covers a step with more."""
+        S, N = self.save_ts.shape[0], self.N
+        lanes = jnp.arange(N)
+        coeffs = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks).coeffs  # (D+1, n, N)
+
+        def pending(ptr):
+            return took & (ptr < S) & (self.save_sorted[jnp.minimum(ptr, S - 1)] <= t_end)
+
+        def window(carry):
+            rec, ptr = carry
+            idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (W, N)
+            tt = self.save_sorted[jnp.minimum(idx, S - 1)]
+            ok = took & (idx < S) & (tt <= t_end)
+            dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
+            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, W, N)
+            rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
+            ys = rec.ys.at[lanes[None, :], rows].set(jnp.moveaxis(vals, 0, -1), mode="drop")
+            modes = rec.saved_modes.at[lanes[None, :], rows].set(
+                jnp.broadcast_to(mode, rows.shape), mode="drop")
+            rec = eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, modes))
+            return rec, ptr + jnp.sum(ok, axis=0, dtype=ptr.dtype)
+
+        def run(carry):
+            return eqxi.while_loop(lambda c: jnp.any(pending(c[1])), window, carry,
+                                   max_steps=-(-S // SAVE_WINDOW) + 1,
+                                   kind=self.loop_kind)
+
+        rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
+        return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
+
+    # ------------------------------------------------------------------ the loop
+    def body(self, carry):
+        return self.step_stage(*self.start_stage(*carry))
+
+    def run(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+        # Lanes-last by design: per-lane (N,) masks and scalars broadcast against (k, N)
+        # arrays along the leading axis, whatever the caller's rank-promotion setting.
+        with jax.numpy_rank_promotion("allow"):
+            return self._run(t0, y0, mode0)
+
+    def _run(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+        st, rec = eqxi.while_loop(
+            lambda c: jnp.any(~c[0].done),
+            self.body,
+            self.init(t0, y0, mode0),
+            max_steps=self.max_steps + self.max_epochs + 2,
+            kind=self.loop_kind,
+            checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
+        )
+        return _stop(st, jnp.ones_like(st.done), Status.MAX_STEPS), rec

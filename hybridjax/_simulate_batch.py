@@ -1,0 +1,178 @@
+"""`simulate_batch`: N executions at once, on the batched structure-of-arrays engine."""
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jaxtyping import ArrayLike, Float, Int
+
+from ._batched import BatchedLoop, as_status
+from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
+from ._simulate import _checked_options, _save_times, simulate
+from ._solution import Solution
+from ._system import HybridSystem
+
+
+def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
+                           per_lane_times: bool) -> str | None:
+    """Why the batched engine cannot run this problem (None when it can)."""
+    if not can_unroll(solver):
+        return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
+                "Tsit5, Dopri5, Dopri8")
+    if not can_use_fast_controller(controller):
+        return (f"stepsize_controller {controller!r} is not a PIDController with default "
+                "coefficients, rms norm and no dtmin, dtmax, step_ts or jump_ts")
+    if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
+        return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
+    if system.completions:
+        return "Zeno completions are not supported by the batched engine yet"
+    return None
+
+
+def _lanes(x) -> int:
+    return int(np.shape(x)[0])
+
+
+def simulate_batch(
+    system: HybridSystem,
+    x0: Float[ArrayLike, "batch dim"],
+    mode0: str | int | Int[ArrayLike, " batch"],
+    t0: Float[ArrayLike, "*batch"],
+    t1: Float[ArrayLike, "*batch"],
+    args: Any = None,
+    *,
+    args_batched: bool = False,
+    solver: diffrax.AbstractSolver = diffrax.Tsit5(),
+    stepsize_controller: diffrax.AbstractStepSizeController | None = None,
+    saveat: diffrax.SaveAt | Float[ArrayLike, " saves"] | None = None,
+    dt0: float | None = None,
+    max_epochs: int = 64,
+    max_steps: int = 4096,
+    event_tol: float | None = None,
+    interior_points: int = 4,
+    max_zero_epochs: int = 16,
+    zeno: bool = True,
+    zeno_window: int = 3,
+    zeno_ratio_tol: float = 0.05,
+    zeno_max_ratio: float = 0.99,
+    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
+    engine: str = "auto",
+    block: int | None = None,
+) -> Solution:
+    r"""Simulate N executions of `system`, one per row of `x0`; a batched `Solution`.
+
+    The same executions as `jax.vmap(simulate)` (same semantics, options and `Solution`, with
+    a leading batch axis), computed by a loop written for the batch: the state of all
+    executions is kept as structure of arrays (one vector per state component across the
+    batch), every execution advances one solver step per iteration with its own time, step
+    size, mode and events, and the work only some executions need in an iteration (the
+    epoch-start test, root location, resets) is done on those executions alone, gathered into
+    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a default
+    `PIDController`; `benchmarks/work_precision.py` measures it against `vmap(simulate)`.
+
+    **Arguments** (as `simulate`, except):
+
+    - `x0`: (N, dim) initial states (rows padded to the largest mode dimension when `mode0`
+      is an array).
+    - `mode0`: one mode (name or index) for all, or an (N,) integer array.
+    - `t0`, `t1`: scalars or (N,) arrays.
+    - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
+      has a leading axis N (execution i sees `args[i]`).
+    - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
+      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
+      Not on the batched engine (yet): Zeno completions, implicit solvers, PID coefficients,
+      `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
+    - `saveat`: as `simulate`; the same save times for every execution.
+    - `block`: the most executions whose rare work (epoch start, event location, reset) is
+      done in one iteration, gathered into a block; the others wait an iteration (default:
+      all for N <= 256, else max(256, N/4)). Results do not depend on it.
+
+    Differentiable like `simulate` (`jax.grad`, `jax.jacrev` with the default `adjoint`,
+    `jax.jacfwd` with `diffrax.ForwardMode()`), with respect to `x0`, `args`, `t0`, `t1`.
+
+    !!! Example
+
+        ```python
+        import hybridjax as hj, jax, jax.numpy as jnp
+        ball = hj.examples.bouncing_ball()
+        x0 = jnp.stack([jax.random.uniform(jax.random.PRNGKey(0), (10_000,), minval=0.5,
+                                           maxval=1.5), jnp.zeros(10_000)], 1)
+        sols = jax.jit(lambda x0: hj.simulate_batch(ball, x0, "flight", 0.0, 2.5,
+                                                    {"g": 9.8, "e": 0.8}))(x0)
+        sols.num_events.mean()
+        ```
+    """
+    if engine not in ("auto", "batched", "vmap"):
+        raise ValueError(f"engine must be 'auto', 'batched' or 'vmap', got {engine!r}.")
+    x0_arr = jnp.asarray(x0)
+    if x0_arr.ndim != 2:
+        raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
+    N = x0_arr.shape[0]
+    if args_batched:
+        bad = [np.shape(a) for a in jtu.tree_leaves(args) if not np.shape(a) or _lanes(a) != N]
+        if bad:
+            raise ValueError(f"args_batched=True: every leaf of args needs a leading axis of {N} "
+                             f"(x0 has {N} rows); got leaves of shape {bad}.")
+    lane_args = jtu.tree_map(lambda a: a[0], args) if args_batched else args
+    t0_in, t1_in = t0, t1
+    t0 = jnp.broadcast_to(jnp.asarray(t0), (N,))
+    t1 = jnp.broadcast_to(jnp.asarray(t1), (N,))
+    if isinstance(mode0, (str, int, np.integer)):
+        mode0 = system.mode_index(mode0) if isinstance(system, HybridSystem) else mode0
+    opts = dict(solver=solver, stepsize_controller=stepsize_controller, dt0=dt0, max_epochs=max_epochs,
+                max_steps=max_steps, event_tol=event_tol, interior_points=interior_points,
+                max_zero_epochs=max_zero_epochs, zeno_window=zeno_window, zeno_max_ratio=zeno_max_ratio,
+                adjoint=adjoint)
+    dtype, kind, checkpoints, solver_p, controller, event_tol_v = _checked_options(
+        system, x0_arr[0], lane_args, **opts)
+    per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
+    refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
+    if engine == "batched" and refusal is not None:
+        raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
+    if engine == "vmap" or refusal is not None:
+        m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
+
+        def one(x, m, a, s, e):
+            return simulate(system, x, m, s, e, a, saveat=saveat, zeno=zeno,
+                            zeno_ratio_tol=zeno_ratio_tol, engine="auto", **opts)
+
+        return jax.vmap(one, in_axes=(0, 0, 0 if args_batched else None, 0, 0))(x0_arr, m0, args, t0, t1)
+
+    n = system.max_dim
+    if x0_arr.shape[1] != n:
+        if np.ndim(mode0) != 0:
+            raise ValueError(f"x0 has {x0_arr.shape[1]} columns; with an array mode0 pass padded "
+                             f"states of length {n} (the largest mode dimension).")
+        dim = system.modes[int(mode0)].dim
+        if x0_arr.shape[1] != dim:
+            raise ValueError(f"x0 has {x0_arr.shape[1]} columns but mode "
+                             f"'{system.modes[int(mode0)].name}' has dim {dim}.")
+        x0_arr = jnp.concatenate([x0_arr, jnp.zeros((N, n - dim), x0_arr.dtype)], axis=1)
+    y0 = x0_arr.astype(dtype)
+    save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
+    m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
+    t0, t1 = t0.astype(dtype), t1.astype(dtype)
+    t1 = eqx.error_if(t1, t1 < t0, "simulate_batch: t1 must be >= t0.")
+    loop = BatchedLoop(
+        system, t1=t1, args=args, args_axis=0 if args_batched else None,
+        solver=UnrolledERK(solver_p), controller=FastIController(controller), dt0=dt0,
+        max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
+        event_tol=event_tol_v, max_zero_epochs=int(max_zero_epochs),
+        zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
+                  max_ratio=float(zeno_max_ratio)) if zeno else None,
+        loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=N, block=block, save_ts=save_ts)
+    st, rec = loop.run(t0, y0.T, m0)
+    batched_args = args if args_batched else jtu.tree_map(
+        lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
+    return Solution(
+        **rec.fields(m0, n), num_events=st.num_events, zeno_time=st.zeno_time,
+        zeno_state=st.zeno_state.T,
+        final_time=st.t, final_mode=st.mode, final_state=st.y.T, status=as_status(st.status),
+        ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape), num_steps=st.num_steps,
+        num_rejected=st.num_rejected, t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
+    )
+

@@ -1,0 +1,265 @@
+"""The batched engine (`simulate_batch`) against the per-execution engine and closed forms.
+
+Truths: `jax.vmap(simulate)` (itself held to closed forms and diffrax's steps by the rest of the
+suite) for whole runs on every example and every status, the bouncing ball's closed form, central
+differences for gradients, and diffrax's own interpolation for the dense-output representation.
+Batches are small and `block=2`, so that an iteration's rare work runs both on a gathered block
+(at most two executions need it) and on the whole batch (more do).
+"""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+from hybridjax import examples
+from hybridjax._batched import ChebyshevDense, chebyshev_weights
+
+from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
+
+THERMO_ARGS = dict(a=0.1, T_amb=5.0, P_heat=2.5, P_cool=2.0, s=20.0)
+CASES = {
+    "bouncing ball": (BALL, [1.0, 0.3], "flight", 3.0, BALL_ARGS),
+    "thermostat": (THERMO, [19.0], "off", 40.0, THERMO_ARGS),
+    "wall particle": (WALL, [0.0, 1.0, 1.5, 3.0], "flight", 3.0, {"g": 9.8, "w": 2.0, "c": 0.7}),
+    "ceiling ball": (CEILING, [0.0, 7.0], "flight", 1.0, {"g": 9.8, "H": 2.0}),
+    "rimless wheel": (examples.rimless_wheel(), [0.1, 0.6], 0, 4.0, {"alpha": 0.3, "gamma": 0.08}),
+    "pendulum wall": (examples.pendulum_wall(), [-0.5, 0.8], "swing", 9.0, {"theta_w": 0.2, "e": 0.7}),
+    "van der pol relay": (examples.van_der_pol_relay(), [-1.0, 0.5], 0, 10.0, 5.0),
+    "stiff relay, mild": (examples.stiff_relay(), [0.0, 0.0], 0, 5.0, 20.0),
+}
+
+
+def _both(system, x0, mode0, t1, args, **kw):
+    run = lambda engine: hj.simulate_batch(system, x0, mode0, 0.0, t1, args, engine=engine,  # noqa: E731
+                                           stepsize_controller=TIGHT, block=2, **kw)
+    return run("batched"), run("vmap")
+
+
+def _assert_same_executions(got, want, rtol=1e-8, atol=1e-9):
+    np.testing.assert_array_equal(got.status_code, want.status_code)
+    np.testing.assert_array_equal(got.num_events, want.num_events)
+    np.testing.assert_array_equal(got.transitions, want.transitions)
+    np.testing.assert_array_equal(got.epoch_modes, want.epoch_modes)
+    np.testing.assert_array_equal(got.final_mode, want.final_mode)
+    np.testing.assert_array_equal(got.simultaneous, want.simultaneous)
+    finite = np.isfinite(np.asarray(want.event_times))
+    np.testing.assert_array_equal(np.isfinite(np.asarray(got.event_times)), finite)
+    np.testing.assert_allclose(np.asarray(got.event_times)[finite], np.asarray(want.event_times)[finite],
+                               rtol=rtol, atol=atol)
+    for field in ("states_before", "states_after", "final_state", "final_time", "zeno_time"):
+        a, b = np.asarray(getattr(got, field)), np.asarray(getattr(want, field))
+        np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b), err_msg=field)
+        np.testing.assert_allclose(a[np.isfinite(a)], b[np.isfinite(b)], rtol=rtol, atol=atol, err_msg=field)
+    # The same steps: the same controller rule on the same error estimates (to rounding).
+    steps_got, steps_want = np.asarray(got.num_steps), np.asarray(want.num_steps)
+    assert np.all(np.abs(steps_got - steps_want) <= np.maximum(2, steps_want // 50))
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_batched_engine_agrees_with_per_execution_engine_on_every_example(name):
+    system, x0, mode0, t1, args = CASES[name]
+    # five executions around the example's initial state (different event times and counts)
+    scale = 1.0 + 0.07 * np.arange(5)[:, None]
+    X = jnp.asarray(np.asarray(x0) * scale + 0.01 * np.arange(5)[:, None])
+    got, want = _both(system, X, mode0, t1, args, saveat=jnp.linspace(0.0, t1, 7))
+    assert int(np.max(want.num_events)) >= 1
+    _assert_same_executions(got, want)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-8, atol=1e-9)
+    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+
+
+def _chatter():
+    a = hj.Mode("A", lambda t, x, p: jnp.zeros_like(x), 1)
+    b = hj.Mode("B", lambda t, x, p: jnp.zeros_like(x), 1)
+    return hj.HybridSystem([a, b], [hj.Transition("A", "B", guard=lambda t, x, p: x[0] - 1.0),
+                                    hj.Transition("B", "A", guard=lambda t, x, p: x[0] - 1.0)])
+
+
+def _nan_reset():
+    return hj.HybridSystem(BALL.modes, [hj.Transition(
+        "flight", "flight", guard=lambda t, x, p: x[0],
+        reset=lambda t, x, p: jnp.where(t > 0.5, jnp.nan, 1.0) * jnp.array([x[0], -p["e"] * x[1]]))])
+
+
+STATUS_CASES = {
+    # name: (system, x0 rows, mode0, t1, args, extra options, status of every row)
+    "zeno": (BALL, [[1.0, 0.0], [0.5, 1.0]], "flight", 20.0, BALL_ARGS, dict(max_epochs=200), "ZENO"),
+    "max_epochs": (BALL, [[1.0, 0.0], [0.8, 0.5]], "flight", 5.0, BALL_ARGS, dict(max_epochs=3),
+                   "MAX_EPOCHS"),
+    "max_steps": (BALL, [[1.0, 0.0], [0.8, 0.5]], "flight", 3.0, BALL_ARGS, dict(max_steps=3), "MAX_STEPS"),
+    "blocked": (line_system(domain=lambda t, x, p: 1.0 - x[0]), [[0.25], [0.5]], "m", 2.0, None, {}, "BLOCKED"),
+    "chattering": (_chatter(), [[0.5], [0.2]], "A", 1.0, None, {}, "CHATTERING"),
+    "nonfinite reset": (_nan_reset(), [[1.0, 0.0], [0.9, 0.1]], "flight", 3.0, BALL_ARGS, {}, "NONFINITE"),
+    "nonfinite flow": (hj.HybridSystem(
+        [hj.Mode("m", lambda t, x, p: jnp.where(t < 0.5, -jnp.ones_like(x), jnp.nan), 1)],
+        [hj.Transition("m", "m", guard=lambda t, x, p: x[0] + 10.0)]), [[1.0], [2.0]], "m", 1.0, None, {},
+        "NONFINITE"),
+}
+
+
+@pytest.mark.parametrize("name", list(STATUS_CASES))
+def test_batched_engine_stops_with_the_same_status_and_keeps_the_partial_results(name):
+    system, rows, mode0, t1, args, kw, status = STATUS_CASES[name]
+    got, want = _both(system, jnp.asarray(rows, float), mode0, t1, args, **kw)
+    assert list(np.asarray(want.status_name)) == [status] * len(rows)
+    _assert_same_executions(got, want, rtol=1e-7, atol=1e-8)
+
+
+@pytest.fixture(scope="module")
+def ball_batch():
+    rng = np.random.default_rng(3)
+    N = 64
+    x0 = np.stack([rng.uniform(0.5, 1.5, N), rng.uniform(-1, 1, N)], 1)
+    run = jax.jit(lambda x0: hj.simulate_batch(BALL, x0, "flight", 0.0, 2.5, BALL_ARGS,
+                                               stepsize_controller=TIGHT, max_epochs=32))
+    return x0, run(jnp.asarray(x0))
+
+
+def test_batched_ball_matches_the_closed_form(ball_batch):
+    x0, sol = ball_batch
+    for i in range(x0.shape[0]):
+        ref = examples.bouncing_ball_closed_form(x0[i, 0], x0[i, 1], 9.8, 0.8, 2.5)
+        n = len(ref["event_times"])
+        assert int(sol.num_events[i]) == n
+        np.testing.assert_allclose(sol.event_times[i, :n], ref["event_times"], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(sol.final_state[i], ref["final_state"], atol=1e-8)
+    assert list(np.unique(np.asarray(sol.status_name))) == ["T1_REACHED"]
+    # the batch is a Solution like vmap's: index it, read one execution's time domain
+    one = sol[5]
+    assert len(one.hybrid_time_domain()) == int(one.num_events) + 1
+
+
+def test_batched_args_and_per_execution_times():
+    # execution i: its own restitution, start and end time; compared with simulate one by one
+    x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5]])
+    args = {"g": jnp.array([9.8, 9.8, 3.7]), "e": jnp.array([0.8, 0.5, 0.9])}
+    t0, t1 = jnp.array([0.0, 0.2, -0.1]), jnp.array([2.0, 1.5, 3.0])
+    got = hj.simulate_batch(BALL, x0, "flight", t0, t1, args, args_batched=True, stepsize_controller=TIGHT,
+                            block=1)
+    for i in range(3):
+        a = {k: v[i] for k, v in args.items()}
+        one = hj.simulate(BALL, x0[i], "flight", t0[i], t1[i], a, stepsize_controller=TIGHT)
+        assert int(got.num_events[i]) == int(one.num_events)
+        n = int(one.num_events)
+        np.testing.assert_allclose(got.event_times[i, :n], one.event_times[:n], rtol=1e-9)
+        np.testing.assert_allclose(got.final_state[i], one.final_state, rtol=1e-8, atol=1e-9)
+        assert got.status_name[i] == one.status_name  # execution 1 (e = 0.5) is Zeno before t1
+        np.testing.assert_allclose(got.final_time[i], one.final_time, rtol=1e-9)
+    assert list(got.status_name) == ["T1_REACHED", "ZENO", "T1_REACHED"]
+
+
+def test_batched_modes_of_different_dimensions_per_execution():
+    # the wall particle starts in "flight" (4-D) in one execution and in "slide" (2-D) in another
+    x0 = jnp.array([[0.0, 1.0, 1.5, 3.0], [0.5, 0.2, 0.0, 0.0]])
+    mode0 = jnp.array([WALL.mode_index("flight"), WALL.mode_index("slide")])
+    got, want = _both(WALL, x0, mode0, 3.0, {"g": 9.8, "w": 2.0, "c": 0.7})
+    _assert_same_executions(got, want)
+
+
+def _final_heights(engine, adjoint=diffrax.RecursiveCheckpointAdjoint()):
+    def f(x0):
+        return hj.simulate_batch(BALL, x0, "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT, block=1,
+                                 engine=engine, adjoint=adjoint).final_state[:, 0]
+
+    return f
+
+
+def test_batched_gradients_reverse_forward_and_finite_differences_agree():
+    x0 = jnp.array([[1.0, 0.3], [0.8, -0.2]])
+    # each final height depends on its own initial state only: d sum / d x0 is the per-row gradient
+    g_rev = jax.jit(jax.grad(lambda x: jnp.sum(_final_heights("batched")(x))))(x0)
+    fwd = _final_heights("batched", diffrax.ForwardMode())
+    J = jax.jit(jax.jacfwd(lambda v: fwd(v.reshape(2, 2))))(x0.reshape(-1))
+    np.testing.assert_allclose(J.reshape(2, 2, 2)[[0, 1], [0, 1]], g_rev, rtol=1e-7, atol=1e-9)
+    heights = jax.jit(_final_heights("batched", diffrax.ForwardMode()))  # one compile for all 8 calls
+    fd = central_difference(lambda v: np.asarray(heights(jnp.asarray(v).reshape(2, 2))),
+                            np.asarray(x0).reshape(-1))
+    np.testing.assert_allclose(np.asarray(J), fd, rtol=1e-4, atol=1e-5)  # FD: event-time noise
+
+
+def test_batched_gradient_of_saved_states_matches_per_execution_engine():
+    # saved states on both sides of bounces, through the nested loop that writes them
+    def saved(engine):
+        return jax.jit(jax.grad(lambda x: jnp.sum(hj.simulate_batch(
+            BALL, x, "flight", 0.0, 2.0, BALL_ARGS, saveat=jnp.linspace(0.0, 2.0, 60),
+            stepsize_controller=TIGHT, engine=engine).ys[:, 37:45])))
+
+    x0 = jnp.array([[1.0, 0.3], [0.7, -0.4]])
+    np.testing.assert_allclose(saved("batched")(x0), saved("vmap")(x0), rtol=1e-7, atol=1e-9)
+
+
+def test_batched_engine_in_float32_matches_the_closed_form():
+    x0 = np.array([[1.0, 0.0], [0.6, 0.8]], np.float32)
+    sol = hj.simulate_batch(BALL, jnp.asarray(x0), "flight", 0.0, 2.0, BALL_ARGS, engine="batched",
+                            stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
+    assert sol.final_state.dtype == jnp.float32
+    for i in range(2):
+        ref = examples.bouncing_ball_closed_form(float(x0[i, 0]), float(x0[i, 1]), 9.8, 0.8, 2.0)
+        assert int(sol.num_events[i]) == len(ref["event_times"])
+        np.testing.assert_allclose(sol.final_state[i], ref["final_state"], atol=2e-4)
+
+
+@pytest.mark.parametrize("solver", [diffrax.Heun(), diffrax.Midpoint(), diffrax.Ralston(), diffrax.Bosh3(),
+                                    diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()],
+                         ids=lambda s: type(s).__name__)
+def test_chebyshev_form_of_the_dense_output_equals_diffrax_interpolation(solver):
+    rng = np.random.default_rng(4)
+    s = len(type(solver).tableau.c) + 1
+    y0, y1, k = rng.normal(size=3), rng.normal(size=3), rng.normal(size=(s, 3))
+    t0, t1 = 0.7, 0.95
+    A = chebyshev_weights(solver.interpolation_cls, s, jnp.float64)
+    ours = ChebyshevDense.from_stages(A, t0, t1, jnp.asarray(y0), jnp.asarray(y1), jnp.asarray(k))
+    ref = solver.interpolation_cls(t0=t0, t1=t1, y0=jnp.asarray(y0), y1=jnp.asarray(y1), k=jnp.asarray(k))
+    for t in np.linspace(t0, t1, 11):
+        np.testing.assert_allclose(ours.evaluate(t), ref.evaluate(t), rtol=1e-12, atol=1e-13)
+
+
+# a few save times per step, more than SAVE_WINDOW (16) per step, and unsorted
+@pytest.mark.parametrize("num_saves, order", [(400, "sorted"), (30, "shuffled")])
+def test_batched_saved_states_match_free_flight_and_bounces(num_saves, order):
+    ts = np.linspace(0.0, 2.0, num_saves)
+    if order == "shuffled":
+        ts = np.random.default_rng(2).permutation(ts)
+    x0 = np.array([[1.0, 0.0], [0.6, 0.5], [1.3, -0.4]])
+    sol = hj.simulate_batch(BALL, jnp.asarray(x0), "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT,
+                            saveat=diffrax.SaveAt(ts=jnp.asarray(ts), t1=True), engine="batched", block=1)
+    for i in range(3):  # the closed form between impacts, at every save time
+        ref = examples.bouncing_ball_closed_form(x0[i, 0], x0[i, 1], 9.8, 0.8, 2.0)
+        starts = np.concatenate([[0.0], ref["event_times"]])
+        h = np.concatenate([[x0[i, 0]], np.zeros(len(ref["event_times"]))])
+        v = np.concatenate([[x0[i, 1]], ref["post_velocities"]])
+        for k, s in enumerate(np.append(ts, 2.0)):
+            e = np.searchsorted(starts, s, side="left") - 1 if s > 0 else 0  # pre-event state at an impact
+            dt = s - starts[e]
+            np.testing.assert_allclose(sol.ys[i, k], [h[e] + v[e] * dt - 4.9 * dt * dt, v[e] - 9.8 * dt],
+                                       atol=1e-8)
+    assert np.all(np.asarray(sol.saved_modes) == 0)
+
+
+def test_engine_choice_and_errors():
+    x0 = jnp.array([[1.0, 0.0], [0.5, 0.0]])
+    with pytest.raises(ValueError, match="per-execution t0"):
+        hj.simulate_batch(BALL, x0, "flight", jnp.zeros(2), 1.0, BALL_ARGS, engine="batched",
+                          saveat=diffrax.SaveAt(t0=True, ts=jnp.linspace(0, 1, 3)))
+    with pytest.raises(ValueError, match="Kvaerno5"):
+        hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, solver=diffrax.Kvaerno5(), engine="batched")
+    rest = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), 1)
+    completed = hj.HybridSystem([*BALL.modes, rest], BALL.transitions,
+                                completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])])
+    with pytest.raises(ValueError, match="Zeno completions"):
+        hj.simulate_batch(completed, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="batched")
+    with pytest.raises(ValueError, match="engine must be"):
+        hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
+    with pytest.raises(ValueError, match=r"\(N, dim\)"):
+        hj.simulate_batch(BALL, x0[0], "flight", 0.0, 1.0, BALL_ARGS)
+    with pytest.raises(ValueError, match="leading axis of 2"):
+        hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, {"g": jnp.ones(3), "e": jnp.ones(3)}, args_batched=True)
+    with pytest.raises(ValueError, match="has dim 2"):
+        hj.simulate_batch(BALL, jnp.ones((2, 3)), "flight", 0.0, 1.0, BALL_ARGS)
+    # "auto" falls back to vmap(simulate) where the batched engine does not apply
+    sol = hj.simulate_batch(BALL, x0, "flight", 0.0, 0.2, BALL_ARGS, solver=diffrax.Kvaerno5(),
+                            saveat=jnp.array([0.1, 0.2]), stepsize_controller=TIGHT)
+    np.testing.assert_allclose(sol.ys[:, 1, 0], np.asarray(x0[:, 0]) - 0.5 * 9.8 * 0.2**2, rtol=1e-8)
