@@ -39,6 +39,7 @@ from ._events import (
     locate_root,
     start_decision,
 )
+from ._fast_rk import weighted_sum
 from ._kernels import Kernels, mask_inputs
 from ._loop import event_point
 from ._status import Status
@@ -121,16 +122,6 @@ def _rows_all(x):
 
 def _rows_any(x):
     return _fold(jnp.logical_or, x)
-
-
-def _combo(weights, ks, like):
-    """sum_i w_i k_i over the nonzero weights (skipped at trace time)."""
-    out = None
-    for w, k in zip(weights, ks, strict=True):
-        if w != 0.0:
-            term = jnp.asarray(w, like.dtype) * k
-            out = term if out is None else out + term
-    return jnp.zeros_like(like) if out is None else out
 
 
 def _detect(g_prev, G_e, D_e, times):
@@ -224,7 +215,7 @@ class ChebyshevDense(eqx.Module):
     @classmethod
     def from_stages(cls, A, t0, t1, y0, y1, ks):
         rows = [jnp.asarray(r[0], y0.dtype) * y0 + jnp.asarray(r[1], y0.dtype) * y1
-                + _combo(r[2:], list(ks), y0) for r in A]
+                + weighted_sum(r[2:], list(ks), y0) for r in A]
         return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
 
     def evaluate(self, t):
@@ -489,11 +480,11 @@ class BatchedLoop:
             f0 = self.flows(st.mode, t, y)
         ks, z, f_last = [f0 * hh], y, f0
         for c_i, a_i in zip(solver.c, solver.a, strict=True):
-            z = y + _combo(a_i, ks, y)
+            z = y + weighted_sum(a_i, ks, y)
             f_last = self.flows(st.mode, t + c_i * hh, z)
             ks.append(f_last * hh)
-        y1 = z if solver.ssal else y + _combo(solver.b_sol, ks, y)
-        y_err = _combo(solver.b_err, ks, y)
+        y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
+        y_err = weighted_sum(solver.b_err, ks, y)
         # The I controller of `FastIController`, per lane.
         order = c._get_error_order(self.error_order)
         finite_y1 = _rows_all(jnp.isfinite(y1))
@@ -518,8 +509,8 @@ class BatchedLoop:
             for i, th in enumerate(self.thetas):
                 (va, vb, vc), (da, db, dc) = self.w_value[i], self.w_slope[i]
                 samples.append(y_sg if i == 0 else y1_sg if i == last else
-                               va * y_sg + vb * y1_sg + _combo(vc, ks_sg, y_sg))
-                slopes.append((da * y_sg + db * y1_sg + _combo(dc, ks_sg, y_sg)) / safe_h)
+                               va * y_sg + vb * y1_sg + weighted_sum(vc, ks_sg, y_sg))
+                slopes.append((da * y_sg + db * y1_sg + weighted_sum(dc, ks_sg, y_sg)) / safe_h)
                 times.append(sg(t) if i == 0 else sg(t_next) if i == last else sg(t) + hs * float(th))
 
             def guard_jvp(m, tt, yy, yd, a):

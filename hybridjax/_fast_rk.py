@@ -38,6 +38,17 @@ UNROLLED_SOLVERS = (diffrax.Heun, diffrax.Midpoint, diffrax.Ralston, diffrax.Bos
                     diffrax.Tsit5, diffrax.Dopri5, diffrax.Dopri8)
 
 
+def weighted_sum(weights, ks, like):
+    """sum_i w_i k_i over the nonzero weights (zeros skipped at trace time); zeros like `like`
+    when every weight is zero."""
+    out = None
+    for w, k in zip(weights, ks, strict=True):
+        if w != 0.0:
+            term = jnp.asarray(w, like.dtype) * k
+            out = term if out is None else out + term
+    return jnp.zeros_like(like) if out is None else out
+
+
 def can_unroll(solver) -> bool:
     """Whether `UnrolledERK` reproduces `solver`'s step (an explicit RK with a plain tableau)."""
     return type(solver) in UNROLLED_SOLVERS and isinstance(
@@ -81,18 +92,12 @@ class UnrolledERK:
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
-        dtype = y0.dtype
 
         def vf(t, y):
             return terms.vf(t, y, args)
 
         def combo(coeffs, ks):
-            out = None
-            for w, k in zip(coeffs, ks, strict=True):
-                if w != 0.0:
-                    term = jnp.asarray(w, dtype) * k
-                    out = term if out is None else out + term
-            return jnp.zeros_like(y0) if out is None else out
+            return weighted_sum(coeffs, ks, y0)
 
         if self.fsal:
             _, f_prev = solver_state

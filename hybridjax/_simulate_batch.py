@@ -133,9 +133,8 @@ def simulate_batch(
     refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
+    m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
     if engine == "vmap" or refusal is not None:
-        m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
-
         def one(x, m, a, s, e):
             return simulate(system, x, m, s, e, a, saveat=saveat, zeno=zeno,
                             zeno_ratio_tol=zeno_ratio_tol, engine="auto", **opts)
@@ -154,7 +153,6 @@ def simulate_batch(
         x0_arr = jnp.concatenate([x0_arr, jnp.zeros((N, n - dim), x0_arr.dtype)], axis=1)
     y0 = x0_arr.astype(dtype)
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
-    m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1 = eqx.error_if(t1, t1 < t0, "simulate_batch: t1 must be >= t0.")
     loop = BatchedLoop(
