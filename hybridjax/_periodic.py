@@ -18,6 +18,7 @@ orbits of hybrid dynamical systems", IEEE TAC 60(10), 2015.
 from typing import Any, NamedTuple
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -96,27 +97,41 @@ def periodic_orbit(
 
     found = optx.root_find(residual, optx.Newton(rtol=rtol, atol=rtol), x_guess, throw=False)
     x_star = found.value
-    P, period, hit, first_event = first_return(x_star)
+
+    # Two compiled functions (eager calls of `simulate` would dispatch op by op and compile
+    # once per call site): the return map with its Jacobian, then the monodromy matrix.
+    @eqx.filter_jit
+    def return_map(x):
+        def P_aux(x):
+            P, *aux = first_return(x)
+            return P, (P, *aux)
+
+        return jax.jacfwd(P_aux, has_aux=True)(x)
+
+    DP, (P, period, hit, first_event) = return_map(x_star)
     if not bool(hit):
         raise RuntimeError(
             f"periodic_orbit: transition {system.transitions[k].label} did not fire again "
             f"within t_max={t_max} from the converged state {np.asarray(x_star)}."
         )
-    period = float(period)
-    DP = jax.jacfwd(lambda x: first_return(x)[0])(x_star)
 
-    # Base point inside the first epoch (not on an event), so the time-T flow is smooth there.
-    base_time = 0.5 * float(first_event)
-    base = simulate(system, x_star, mode, 0.0, base_time, args, stepsize_controller=ctrl,
-                    max_epochs=max_epochs).final_state
+    @eqx.filter_jit
+    def monodromy(x_star, base_time, period):
+        # Base point inside the first epoch (not on an event), so the time-T flow is smooth there.
+        base = simulate(system, x_star, mode, 0.0, base_time, args, stepsize_controller=ctrl,
+                        max_epochs=max_epochs).final_state
 
-    def flow_T(x):
-        return simulate(system, x, mode, 0.0, period, args, stepsize_controller=ctrl,
-                        max_epochs=max_epochs, adjoint=fwd).final_state
+        def flow_T(x):
+            sol = simulate(system, x, mode, 0.0, period, args, stepsize_controller=ctrl,
+                           max_epochs=max_epochs, adjoint=fwd)
+            return sol.final_state, sol
 
-    M_ad = np.asarray(jax.jacfwd(flow_T)(base))
-    orbit_sol = simulate(system, base, mode, 0.0, period, args, stepsize_controller=ctrl,
-                         max_epochs=max_epochs)
+        M_ad, orbit_sol = jax.jacfwd(flow_T, has_aux=True)(base)
+        return base, M_ad, orbit_sol
+
+    base_time = 0.5 * first_event
+    base, M_ad, orbit_sol = monodromy(x_star, base_time, period)
+    period, base_time, M_ad = float(period), float(base_time), np.asarray(M_ad)
     M_salt = variational_jacobian(orbit_sol).final_state
     return PeriodicOrbit(
         state=np.asarray(x_star),

@@ -89,7 +89,9 @@ def simulate_batch(
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: the most executions whose rare work (epoch start, event location, reset) is
       done in one iteration, gathered into a block; the others wait an iteration (default:
-      all for N <= 256, else max(256, N/4)). Results do not depend on it.
+      all for N <= 256, else max(256, N/4)). Results do not depend on it; speed does: a
+      smaller block suits long runs with few events per step (Van der Pol relay, N = 10,000:
+      N/32 runs ~1.3x faster than N/4), a larger one event-dense runs (the bouncing ball).
 
     Differentiable like `simulate` (`jax.grad`, `jax.jacrev` with the default `adjoint`,
     `jax.jacfwd` with `diffrax.ForwardMode()`), with respect to `x0`, `args`, `t0`, `t1`.

@@ -84,16 +84,19 @@ def _nan_reset():
         reset=lambda t, x, p: jnp.where(t > 0.5, jnp.nan, 1.0) * jnp.array([x[0], -p["e"] * x[1]]))])
 
 
-# Left out for CI time (two more compiles each): MAX_STEPS and a non-finite flow; NONFINITE is
-# compared here through a non-finite reset.
 STATUS_CASES = {
     # name: (system, x0 rows, mode0, t1, args, extra options, status of every row)
     "zeno": (BALL, [[1.0, 0.0], [0.5, 1.0]], "flight", 20.0, BALL_ARGS, dict(max_epochs=200), "ZENO"),
     "max_epochs": (BALL, [[1.0, 0.0], [0.8, 0.5]], "flight", 5.0, BALL_ARGS, dict(max_epochs=3),
                    "MAX_EPOCHS"),
+    "max_steps": (BALL, [[1.0, 0.0], [0.8, 0.5]], "flight", 3.0, BALL_ARGS, dict(max_steps=3), "MAX_STEPS"),
     "blocked": (line_system(domain=lambda t, x, p: 1.0 - x[0]), [[0.25], [0.5]], "m", 2.0, None, {}, "BLOCKED"),
     "chattering": (_chatter(), [[0.5], [0.2]], "A", 1.0, None, {}, "CHATTERING"),
     "nonfinite reset": (_nan_reset(), [[1.0, 0.0], [0.9, 0.1]], "flight", 3.0, BALL_ARGS, {}, "NONFINITE"),
+    "nonfinite flow": (hj.HybridSystem(
+        [hj.Mode("m", lambda t, x, p: jnp.where(t < 0.5, -jnp.ones_like(x), jnp.nan), 1)],
+        [hj.Transition("m", "m", guard=lambda t, x, p: x[0] + 10.0)]), [[1.0], [2.0]], "m", 1.0, None, {},
+        "NONFINITE"),
 }
 
 

@@ -59,9 +59,11 @@ def test_near_grazing_crossing_is_found_and_flagged(graze, depth, grazing):
     np.testing.assert_allclose(sol.event_times[0], t_ref, rtol=0, atol=1e-13 + 1e-15 / slope)
     assert bool(sol.grazing[0]) == grazing
     # The event-time derivative dt*/dc = 1 / |dg/dt| grows as depth^(-1/2) towards grazing, and
-    # its relative error as (g dt*)/|dg/dt| ~ 5e-16 / depth: ill-conditioned, hence the flag.
+    # its relative error as (g dt*)/|dg/dt| ~ a few eps / depth: ill-conditioned, hence the flag.
+    # (Measured: 5e-16 / depth with XLA's default optimisation, 2.8e-15 / depth with the suite's
+    # unoptimised compiles, conftest.py: the same IEEE operations, rounded in another order.)
     dt_dc = jax.grad(lambda c: graze(c).event_times[0])(c)
-    np.testing.assert_allclose(dt_dc, dt_dc_ref, rtol=max(1e-7, 1e-15 / depth))
+    np.testing.assert_allclose(dt_dc, dt_dc_ref, rtol=max(1e-7, 4e-15 / depth))
 
 
 @pytest.mark.parametrize("depth", [-1e-12, -1e-6, -1e-3])

@@ -1,0 +1,93 @@
+"""Compile time against run time: XLA:CPU's compiler settings, measured on problem A.
+
+JAX reads `XLA_FLAGS` once, when it creates its CPU backend, so each setting runs in a fresh
+Python process (this script re-runs itself with `--one`). For each: trace + lower time, XLA
+compile time, and the best of 5 runs of `jax.jit(hj.simulate_batch)` on the bouncing ball
+(e = 0.8, h0 ~ U(0.5, 1.5), v0 ~ U(-1, 1), T = 2.5, Tsit5, rtol = atol = 1e-9, float64) at
+N = 1,000 and 10,000, with the largest final-state error against the closed form.
+
+Settings: XLA's defaults; `--xla_cpu_use_fusion_emitters=false` (the older loop emitters);
+and that with `--xla_backend_optimization_level=0` (no LLVM optimisation: what the test suite
+uses, tests/conftest.py). The ratio columns are against the default setting of the same run.
+
+    python benchmarks/compile_time.py      # prints a table, writes results/compile_time.json
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+SETTINGS = {
+    "default": "",
+    "fusion emitters off": "--xla_cpu_use_fusion_emitters=false",
+    "fusion emitters off, LLVM -O0": "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0",
+}
+SIZES = (1000, 10000)
+
+
+def one() -> dict:
+    import diffrax
+    import jax
+    import numpy as np
+
+    import hybridjax as hj
+
+    jax.config.update("jax_enable_x64", True)
+    ball = hj.examples.bouncing_ball()
+    ctrl = diffrax.PIDController(rtol=1e-9, atol=1e-9)
+    out = {}
+    for n in SIZES:
+        rng = np.random.default_rng(0)
+        x0 = np.stack([rng.uniform(0.5, 1.5, n), rng.uniform(-1, 1, n)], 1)
+        fn = jax.jit(lambda x: hj.simulate_batch(ball, x, "flight", 0.0, 2.5, {"g": 9.8, "e": 0.8},
+                                                 stepsize_controller=ctrl, max_epochs=32).final_state)
+        t = time.perf_counter()
+        lowered = fn.trace(x0).lower()
+        t_trace = time.perf_counter() - t
+        t = time.perf_counter()
+        compiled = lowered.compile()
+        t_compile = time.perf_counter() - t
+        final = jax.block_until_ready(compiled(x0))
+        best = float("inf")
+        for _ in range(5):
+            t = time.perf_counter()
+            final = jax.block_until_ready(compiled(x0))
+            best = min(best, time.perf_counter() - t)
+        ref = np.array([hj.examples.bouncing_ball_closed_form(h, v, 9.8, 0.8, 2.5)["final_state"] for h, v in x0])
+        out[n] = dict(trace_lower_s=t_trace, compile_s=t_compile, run_s=best, per_s=n / best,
+                      max_error=float(np.max(np.abs(np.asarray(final) - ref))))
+    return out
+
+
+def main():
+    from _common import machine_info, write_json
+
+    rows = {}
+    for name, flags in SETTINGS.items():
+        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
+        res = subprocess.run([sys.executable, __file__, "--one"], env=env, capture_output=True, text=True,
+                             check=True, cwd=os.path.dirname(os.path.abspath(__file__)))
+        rows[name] = {"flags": flags, **{int(k): v for k, v in json.loads(res.stdout.splitlines()[-1]).items()}}
+    base = rows["default"]
+    print(f"{'setting':32s} {'N':>6s} {'trace+lower':>11s} {'XLA compile':>11s} {'run':>9s} {'exec/s':>9s} "
+          f"{'compile x':>9s} {'speed x':>7s} {'max error':>9s}")
+    for name, r in rows.items():
+        for n in SIZES:
+            c = r[n]
+            print(f"{name:32s} {n:6d} {c['trace_lower_s']:10.2f}s {c['compile_s']:10.2f}s {c['run_s'] * 1e3:7.1f}ms "
+                  f"{c['per_s']:9.0f} {c['compile_s'] / base[n]['compile_s']:9.2f} "
+                  f"{c['per_s'] / base[n]['per_s']:7.2f} {c['max_error']:9.1e}")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    path = write_json("compile_time", dict(machine=machine_info(), settings=rows))
+    print("wrote", path)
+
+
+if __name__ == "__main__":
+    if "--one" in sys.argv:
+        print(json.dumps(one()))
+    else:
+        main()
