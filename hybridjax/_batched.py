@@ -282,9 +282,11 @@ class BatchedLoop:
         """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
         return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
 
-    def lane_map(self, fn, *tree):
-        """`fn(*tree_i, args_i)` on every lane (lanes last in and out)."""
-        return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, self.args)
+    def lane_map(self, fn, *tree, args=None):
+        """`fn(*tree_i, args_i)` on every lane (lanes last in and out); `args` those of the
+        lanes in `tree` (default: all)."""
+        args = self.args if args is None else args
+        return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
     def on_lanes(self, mask, fn, *tree):
         """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done)`.
@@ -300,7 +302,7 @@ class BatchedLoop:
         sub = jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
         sub_args = self.args if self.args_axis is None else jtu.tree_map(
             lambda a: jnp.take(a, idx, axis=0, mode="clip"), self.args)
-        out = jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*sub, sub_args)
+        out = self.lane_map(fn, *sub, args=sub_args)
         out = jtu.tree_map(
             lambda o: jnp.zeros(o.shape[:-1] + (N,), o.dtype).at[..., idx].set(o, mode="drop"), out)
         return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop")

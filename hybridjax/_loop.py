@@ -518,7 +518,7 @@ class Loop:
         if kern.num_watch:
             dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
             interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
-            t_ev, y_before, grazing = self.event_point(mode, k, t_star, interp_e, args_e)
+            t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp_e, args_e)
 
         # save: requested times inside (t, t_end], t_end the event time or the step's end;
         # applied to the record by `body` (see `EventRecord`).
@@ -588,10 +588,6 @@ class Loop:
         new = _select(stuck | (keep & ~finite_G), halted, progressed)
         new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
         return _select(active, new, st_all), save
-
-    def event_point(self, mode, k, t_star, interp, args):
-        """See `event_point`."""
-        return event_point(self.kern, self.eps, mode, k, t_star, interp, args)
 
     # ----------------------------------------------------------------- the loop
     def body(self, carry):

@@ -12,7 +12,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from ._batched import BatchedLoop, as_status
 from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
-from ._simulate import _checked_options, _save_times, simulate
+from ._simulate import _checked_options, _initial_state, _save_times, simulate
 from ._solution import Solution
 from ._system import HybridSystem
 
@@ -144,15 +144,9 @@ def simulate_batch(
         return jax.vmap(one, in_axes=(0, 0, 0 if args_batched else None, 0, 0))(x0_arr, m0, args, t0, t1)
 
     n = system.max_dim
-    if x0_arr.shape[1] != n:
-        if np.ndim(mode0) != 0:
-            raise ValueError(f"x0 has {x0_arr.shape[1]} columns; with an array mode0 pass padded "
-                             f"states of length {n} (the largest mode dimension).")
-        dim = system.modes[int(mode0)].dim
-        if x0_arr.shape[1] != dim:
-            raise ValueError(f"x0 has {x0_arr.shape[1]} columns but mode "
-                             f"'{system.modes[int(mode0)].name}' has dim {dim}.")
-        x0_arr = jnp.concatenate([x0_arr, jnp.zeros((N, n - dim), x0_arr.dtype)], axis=1)
+    if x0_arr.shape[1] != n:  # `simulate`'s check and padding, row by row
+        one_mode = int(mode0) if np.ndim(mode0) == 0 else None  # None: per-execution modes
+        x0_arr = jax.vmap(lambda x: _initial_state(system, x, one_mode, dtype))(x0_arr)
     y0 = x0_arr.astype(dtype)
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
