@@ -5,7 +5,8 @@ An execution is Zeno before t1 when sqrt(2 h0 / g) (1 + e) / (1 - e) <= t1; the 
 Zeno fraction is compared with the closed-form fraction of the same samples. Reports the
 run time, executions/s, peak resident memory and the Zeno fraction with its 95% interval.
 
-    python benchmarks/monte_carlo_zeno.py [N] [chunk]     # default 1,000,000 and 50,000
+    python benchmarks/monte_carlo_zeno.py [N] [chunk] [lanes]   # default 1,000,000, 50,000, and
+                                                                # simulate_batch's default lanes
 """
 
 import resource
@@ -31,10 +32,11 @@ def sampler(key, m):
 def main():
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
     chunk = int(sys.argv[2]) if len(sys.argv) > 2 else 50_000
+    lanes = int(sys.argv[3]) if len(sys.argv) > 3 else None
     key = jax.random.PRNGKey(42)
     ball = hj.examples.bouncing_ball()
     res = hj.monte_carlo(ball, sampler, n, mode0="flight", t1=4.0, key=key, chunk_size=chunk,
-                         keep="summary", max_epochs=32)
+                         keep="summary", max_epochs=32, lanes=lanes)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     # closed-form Zeno fraction of the very same samples (regenerated chunk by chunk)
     zeno_cf = 0
@@ -51,7 +53,7 @@ def main():
           f"95% interval [{lo:.5f}, {hi:.5f}])")
     print(f"peak resident memory: {peak_mb:.0f} MiB")
     path = write_json("monte_carlo_zeno", dict(
-        machine=machine_info(), n=n, chunk=chunk, run_s=res.run_s, compile_s=res.compile_s,
+        machine=machine_info(), n=n, chunk=chunk, lanes=lanes, run_s=res.run_s, compile_s=res.compile_s,
         executions_per_s=res.executions_per_s, peak_rss_mib=peak_mb,
         status_counts=res.status_counts, zeno_fraction=frac, zeno_interval=[lo, hi],
         zeno_fraction_closed_form=zeno_cf / n, zeno_time=res.zeno_time, num_events=res.num_events))

@@ -15,7 +15,10 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
   block of N/4 and scattered back (lanes beyond the block wait an iteration: a step whose
   event is not located yet is taken again, identically, in the next);
-- events are written into the max_epochs-long record by one scatter per iteration.
+- events are written into the max_epochs-long record by one scatter per iteration;
+- with fewer lanes than executions, a lane whose execution has ended hands in its final
+  values and takes the next execution not yet started (`refill_stage`), so the batch stays
+  full while executions of different lengths finish.
 
 The per-lane pieces (`_events`, `Kernels`, diffrax's interpolation and initial step) are the
 ones `Loop` uses, so both engines make the same decisions; `tests/test_engines.py` holds them
@@ -71,16 +74,39 @@ class Lanes(eqx.Module):
     recent_times: jax.Array  # (R, N)
     recent_states: jax.Array  # (3, n, N)
     save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
+    t1: jax.Array  # (N,): the end time of each lane's execution
+    exec_id: jax.Array  # (N,) int32: the execution each lane runs (num_executions: none)
+    next_exec: jax.Array  # () int32: the first execution not yet given to a lane
+
+
+class Finals(eqx.Module):
+    """The final values of every execution, lanes last (`Lanes`' fields of the same name),
+    written when its lane finishes: with fewer lanes than executions, a lane runs several."""
+
+    t: jax.Array
+    y: jax.Array
+    mode: jax.Array
+    status: jax.Array
+    num_events: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array
+
+    @classmethod
+    def of(cls, st: "Lanes") -> "Finals":
+        return cls(**{f: getattr(st, f) for f in cls.__dataclass_fields__})
 
 
 class LaneRecord(eqx.Module):
-    """The events of N executions: one float array (N, E, 5 + 2n), a row per event holding
+    """The events of the executions: one float array (N, E, 5 + 2n), a row per event holding
     [time, transition, target mode, simultaneous, grazing, x(t^-) (n), x(t^+) (n)], so that
     an iteration's events are written by one scatter of contiguous rows."""
 
     rows: jax.Array
     ys: jax.Array  # (N, S, n) saved states
     saved_modes: jax.Array  # (N, S)
+    finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
 
     def fields(self, mode0, n: int) -> dict:
         """The `Solution` fields (lanes first)."""
@@ -209,14 +235,19 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     """The solver's dense output y(theta) on the unit interval in the Chebyshev basis:
     y(theta) = sum_m T_m(2 theta - 1) (A_m0 y0 + A_m1 y1 + sum_i A_m(2+i) k_i), exact for
     polynomials of degree <= `degree` (the discrete Chebyshev transform at degree + 1 nodes,
-    well conditioned where monomial coefficients are not). Returns A as nested lists."""
+    well conditioned where monomial coefficients are not). Returns A as nested lists, one row
+    per degree up to the interpolant's own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
     value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
     W = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
     T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
     A = (2.0 / (degree + 1)) * T @ W
     A[0] /= 2
-    return A.tolist()
+    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
+    # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
+    size = np.abs(A).max(axis=1)
+    keep = 1 + int(np.nonzero(size > 64 * np.finfo(dtype).eps * size.max())[0].max())
+    return A[:keep].tolist()
 
 
 class ChebyshevDense(eqx.Module):
@@ -245,12 +276,20 @@ class ChebyshevDense(eqx.Module):
 
 
 class BatchedLoop:
-    """The loop for N executions of one system; `run(t0, y0, mode0)` with lanes-last inputs."""
+    """The loop for the executions of one system; `run(t0, y0, mode0)` with lanes-last inputs.
+
+    `lanes` executions advance together; with fewer lanes than executions (`t1` has one entry
+    per execution), a lane whose execution ends takes the next one not yet started (its final
+    values go to `LaneRecord.finals`), so that the batch stays full until the queue is empty.
+    """
 
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
                  zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int, block: int | None = None,
                  save_ts=None):
+        self.num_exec = int(t1.shape[0])
+        lanes = min(lanes, self.num_exec)
+        self.refill = lanes < self.num_exec
         lane_args = args if args_axis is None else jtu.tree_map(lambda a: a[0], args)
         self.kern = Kernels(system, lane_args, dtype)
         self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
@@ -282,13 +321,23 @@ class BatchedLoop:
         """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
         return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
 
-    def lane_map(self, fn, *tree, args=None):
+    def lane_args(self, st: Lanes, idx=None):
+        """The args of the executions on lanes `idx` (default: all lanes), leading axis theirs."""
+        if self.args_axis is None:
+            return self.args
+        ids = st.exec_id if self.refill else None
+        if idx is not None:
+            ids = idx if ids is None else jnp.take(ids, idx, mode="clip")
+        if ids is None:
+            return self.args
+        return jtu.tree_map(lambda a: jnp.take(a, ids, axis=0, mode="clip"), self.args)
+
+    def lane_map(self, fn, *tree, args):
         """`fn(*tree_i, args_i)` on every lane (lanes last in and out); `args` those of the
-        lanes in `tree` (default: all)."""
-        args = self.args if args is None else args
+        lanes in `tree` (`lane_args`)."""
         return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
-    def on_lanes(self, mask, fn, *tree):
+    def on_lanes(self, st: Lanes, mask, fn, *tree):
         """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done)`.
 
         The first `block` lanes in `mask` are gathered into a block, computed and scattered
@@ -297,24 +346,25 @@ class BatchedLoop:
         """
         N, M = self.N, self.block
         if M >= N:
-            return self.lane_map(fn, *tree), mask
+            return self.lane_map(fn, *tree, args=self.lane_args(st)), mask
         idx = jnp.nonzero(mask, size=M, fill_value=N)[0]
         sub = jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
-        sub_args = self.args if self.args_axis is None else jtu.tree_map(
-            lambda a: jnp.take(a, idx, axis=0, mode="clip"), self.args)
-        out = self.lane_map(fn, *sub, args=sub_args)
+        out = self.lane_map(fn, *sub, args=self.lane_args(st, idx))
         out = jtu.tree_map(
             lambda o: jnp.zeros(o.shape[:-1] + (N,), o.dtype).at[..., idx].set(o, mode="drop"), out)
         return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop")
 
-    def flows(self, mode, t, y):
+    def flows(self, mode, t, y, args):
         """F_mode(t, y) on every lane: (n, N)."""
-        return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y)
+        return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
 
     # ------------------------------------------------------------------ init
-    def init(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
-        N, n, W, E, dt = self.N, self.kern.n, self.kern.num_watch, self.max_epochs, self.dtype
-        st = Lanes(
+    def fresh(self, ids, next_exec) -> Lanes:
+        """Lanes at the start of executions `ids` (clipped to the last one)."""
+        t0, y0, mode0 = self.inputs
+        t0, y0, mode0, t1 = (jnp.take(a, ids, axis=-1, mode="clip") for a in (t0, y0, mode0, self.t1))
+        N, n, W, dt = ids.shape[0], self.kern.n, self.kern.num_watch, self.dtype
+        return Lanes(
             t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dt), f0=jnp.zeros((n, N), dt),
             at_start=jnp.ones((N,), bool), done=jnp.zeros((N,), bool),
             status=jnp.full((N,), Status.T1_REACHED._value, jnp.int32),
@@ -324,21 +374,55 @@ class BatchedLoop:
             zeno_state=jnp.full((n, N), jnp.inf, dt), recent_times=jnp.full((self.recent, N), jnp.inf, dt),
             recent_states=jnp.full((3, n, N), jnp.inf, dt),
             save_ptr=jnp.searchsorted(self.save_sorted, t0, side="right").astype(jnp.int32),
+            t1=t1, exec_id=ids.astype(jnp.int32), next_exec=jnp.asarray(next_exec, jnp.int32),
         )
+
+    def init(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+        self.inputs = (t0, y0, mode0)
+        N, n, E, dt = self.num_exec, self.kern.n, self.max_epochs, self.dtype
+        st = self.fresh(jnp.arange(self.N), self.N)
         at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
         ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
         empty = jnp.concatenate([jnp.array([jnp.inf, -1.0, -1.0, 0.0, 0.0], dt),
                                  jnp.full((2 * n,), jnp.inf, dt)])
-        rec = LaneRecord(rows=jnp.broadcast_to(empty, (N, E, 5 + 2 * n)), ys=ys, saved_modes=saved_modes)
+        finals = None
+        if self.refill:  # every execution MAX_STEPS until its lane finishes it
+            finals = Finals.of(_stop(self.fresh(jnp.arange(N), N), jnp.ones((N,), bool), Status.MAX_STEPS))
+        rec = LaneRecord(rows=jnp.broadcast_to(empty, (N, E, 5 + 2 * n)), ys=ys, saved_modes=saved_modes,
+                         finals=finals)
         return st, rec
+
+    # ------------------------------------------------------------------ refill
+    def flush(self, st: Lanes, rec: LaneRecord, mask) -> LaneRecord:
+        """Write the final values of the lanes in `mask` to their executions' `finals`."""
+        ids = jnp.where(mask, st.exec_id, self.num_exec)  # num_exec: dropped
+        finals = jtu.tree_map(lambda f, v: f.at[..., ids].set(v, mode="drop"), rec.finals, Finals.of(st))
+        return eqx.tree_at(lambda r: r.finals, rec, finals)
+
+    def refill_stage(self, st: Lanes, rec: LaneRecord):
+        """Lanes whose execution has ended hand it in (`flush`) and take the next ones."""
+        ended = st.done & (st.exec_id < self.num_exec)
+
+        def run(carry):
+            st, rec = carry
+            rec = self.flush(st, rec, ended)
+            new_id = st.next_exec + jnp.cumsum(ended, dtype=jnp.int32) - 1
+            take = ended & (new_id < self.num_exec)
+            fresh = self.fresh(new_id, st.next_exec + jnp.sum(take, dtype=jnp.int32))
+            new = jtu.tree_map(lambda a, b: jnp.where(take, a, b), fresh, st)
+            new = eqx.tree_at(lambda s: (s.exec_id, s.next_exec), new,
+                              (jnp.where(ended & ~take, self.num_exec, new.exec_id), fresh.next_exec))
+            return new, rec
+
+        return lax.cond(jnp.any(ended), run, lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ jump
     def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
              grazing, zero_length: bool):
         """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
         the caller); then stop on too many epochs, non-finite values, chattering or Zeno."""
-        E, N = self.max_epochs, self.N
+        E = self.max_epochs
         K = self.kern.num_transitions
         full = st.num_events >= E
         kept = mask & ~full
@@ -351,7 +435,7 @@ class BatchedLoop:
             jnp.stack([t_ev.astype(dt), k.astype(dt), target.astype(dt), simultaneous.astype(dt),
                        grazing.astype(dt)]),
             y_before.astype(dt), y_after.astype(dt)])  # (5 + 2n, N)
-        rec = eqx.tree_at(lambda r: r.rows, rec, rec.rows.at[jnp.arange(N), row].set(values.T, mode="drop"))
+        rec = eqx.tree_at(lambda r: r.rows, rec, rec.rows.at[st.exec_id, row].set(values.T, mode="drop"))
         recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
         recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
                                   st.recent_states)
@@ -374,7 +458,7 @@ class BatchedLoop:
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
                 lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
-            )(st.recent_times, st.recent_states, self.t1)
+            )(st.recent_times, st.recent_states, st.t1)
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
@@ -410,7 +494,7 @@ class BatchedLoop:
 
         def run(carry):
             st, rec = carry
-            out, handled = self.on_lanes(active, self._start_lane, st.t, st.y, st.mode, st.h, self.t1)
+            out, handled = self.on_lanes(st, active, self._start_lane, st.t, st.y, st.mode, st.h, st.t1)
             active_now = active & handled  # the others stay at the start of their epoch
             fire = active_now & out["fire"]
             K = self.kern.num_transitions
@@ -419,7 +503,7 @@ class BatchedLoop:
                 lambda s: (s.at_start, s.g_prev, s.h, s.f0), st,
                 (st.at_start & ~go, jnp.where(go, out["g_start"], st.g_prev),
                  jnp.where(go, out["dt"], st.h), jnp.where(go, out["F"], st.f0)))
-            st = _stop(st, go & (st.t >= self.t1), Status.T1_REACHED)
+            st = _stop(st, go & (st.t >= st.t1), Status.T1_REACHED)
             st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
             if K:
                 st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
@@ -492,14 +576,15 @@ class BatchedLoop:
         stepping = ~st.done & ~st.at_start
         # Lanes that do not step still compute one; their inputs get no gradient (double where).
         t, y, f0 = mask_inputs(stepping, (st.t, st.y, st.f0))
-        t_next = jnp.minimum(jnp.maximum(t + st.h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), self.t1)
+        args = self.lane_args(st)
+        t_next = jnp.minimum(jnp.maximum(t + st.h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), st.t1)
         hh = t_next - t
         if not solver.fsal:
-            f0 = self.flows(st.mode, t, y)
+            f0 = self.flows(st.mode, t, y, args)
         ks, z, f_last = [f0 * hh], y, f0
         for c_i, a_i in zip(solver.c, solver.a, strict=True):
             z = y + weighted_sum(a_i, ks, y)
-            f_last = self.flows(st.mode, t + c_i * hh, z)
+            f_last = self.flows(st.mode, t + c_i * hh, z, args)
             ks.append(f_last * hh)
         y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
         y_err = weighted_sum(solver.b_err, ks, y)
@@ -535,7 +620,7 @@ class BatchedLoop:
                 return jax.jvp(lambda t_, y_: kern.guards(m, t_, y_, sg(a)), (tt, yy),
                                (jnp.ones_like(tt), yd))
 
-            pairs = [self.lane_map(guard_jvp, st.mode, tt, yy, yd)
+            pairs = [self.lane_map(guard_jvp, st.mode, tt, yy, yd, args=args)
                      for tt, yy, yd in zip(times, samples, slopes, strict=True)]
             G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (W, N) each
             finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
@@ -553,15 +638,15 @@ class BatchedLoop:
              jnp.where(acc, f_last, counted.f0), jnp.where(acc, 0, counted.zero_run)))
         if W:
             new = eqx.tree_at(lambda s: s.g_prev, new, jnp.where(acc, G_e[-1], new.g_prev))
-        reached = acc & (t_next >= self.t1)
+        reached = acc & (t_next >= st.t1)
         if W:
             def events(carry):
                 # Lanes with an event in this step: undo the acceptance above, then locate,
                 # jump, and start the next epoch (all only when some lane needs it).
                 new, rec = carry
-                out, handled = self.on_lanes(need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
+                out, handled = self.on_lanes(st, need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
                                              st.mode, has, j, suspect, i_d, x0_d, jnp.stack(times),
-                                             dt_new, self.t1)
+                                             dt_new, st.t1)
                 ev = need & handled & out["event"]
                 # Lanes beyond the block take this step again next iteration (same t, h, y:
                 # the same step), as if it had not been tried.
@@ -588,7 +673,7 @@ class BatchedLoop:
                     # The new epoch's start test was done with the event: where no guard fires
                     # at once, start it here (the start stage handles the rest next iteration).
                     go = (jumping & new.at_start & ~new.done & ~out["next_fire"] & out["next_finite"]
-                          & (new.t < self.t1))
+                          & (new.t < new.t1))
                     new = eqx.tree_at(
                         lambda s: (s.at_start, s.g_prev, s.h, s.f0), new,
                         (new.at_start & ~go, jnp.where(go, out["next_g"], new.g_prev),
@@ -617,8 +702,8 @@ class BatchedLoop:
         """Write the save times in (t, t_end] of each lane whose step was taken, from the step's
         dense output (the pre-event state at an event time), SAVE_WINDOW sorted save times per
         pass; a bounded loop of passes covers a step with more."""
-        S, N = self.save_ts.shape[0], self.N
-        lanes = jnp.arange(N)
+        S = self.save_ts.shape[0]
+        lanes = st.exec_id
         coeffs = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks).coeffs  # (D+1, n, N)
 
         def pending(ptr):
@@ -648,21 +733,29 @@ class BatchedLoop:
 
     # ------------------------------------------------------------------ the loop
     def body(self, carry):
+        if self.refill:
+            carry = self.refill_stage(*carry)
         return self.step_stage(*self.start_stage(*carry))
 
-    def run(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+    def run(self, t0, y0, mode0) -> tuple[Finals, LaneRecord]:
+        """The executions from (t0 (N,), y0 (n, N), mode0 (N,)): their final values and record."""
         # Lanes-last by design: per-lane (N,) masks and scalars broadcast against (k, N)
         # arrays along the leading axis, whatever the caller's rank-promotion setting.
         with jax.numpy_rank_promotion("allow"):
             return self._run(t0, y0, mode0)
 
-    def _run(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
+    def _run(self, t0, y0, mode0) -> tuple[Finals, LaneRecord]:
+        rounds = -(-self.num_exec // self.N)  # executions per lane, at most
         st, rec = eqxi.while_loop(
-            lambda c: jnp.any(~c[0].done),
+            lambda c: jnp.any(~c[0].done) | (c[0].next_exec < self.num_exec),
             self.body,
             self.init(t0, y0, mode0),
-            max_steps=self.max_steps + self.max_epochs + 2,
+            max_steps=rounds * (self.max_steps + self.max_epochs + 2),
             kind=self.loop_kind,
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
-        return _stop(st, jnp.ones_like(st.done), Status.MAX_STEPS), rec
+        st = _stop(st, jnp.ones_like(st.done), Status.MAX_STEPS)
+        if not self.refill:
+            return Finals.of(st), rec
+        rec = self.flush(st, rec, st.exec_id < self.num_exec)
+        return rec.finals, eqx.tree_at(lambda r: r.finals, rec, None, is_leaf=lambda x: x is None)

@@ -151,6 +151,27 @@ def test_batched_args_and_per_execution_times():
     assert list(got.status_name) == ["T1_REACHED", "ZENO", "T1_REACHED"]
 
 
+def test_lanes_fewer_than_executions_take_the_next_execution_when_one_ends():
+    # 7 executions on 2 lanes: each lane runs several in turn, with its own args, start and end
+    # times, save times and final status (execution 2 is Zeno); held to vmap(simulate)
+    x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5], [0.5, 0.9], [1.4, 0.1], [0.9, -0.8], [0.6, 0.0]])
+    args = {"g": jnp.array([9.8, 9.8, 9.8, 3.7, 9.8, 1.6, 9.8]), "e": jnp.array([0.8, 0.7, 0.5, 0.9, 0.8, 0.6, 0.8])}
+    t0 = jnp.array([0.0, 0.2, -0.1, 0.0, 0.5, 0.0, 0.0])
+    t1 = jnp.array([2.0, 0.4, 3.0, 2.5, 1.0, 2.0, 1.5])
+    kw = dict(args_batched=True, stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 2.0, 9))
+    got = hj.simulate_batch(BALL, x0, "flight", t0, t1, args, lanes=2, block=1, engine="batched", **kw)
+    want = hj.simulate_batch(BALL, x0, "flight", t0, t1, args, engine="vmap", **kw)
+    assert "ZENO" in list(want.status_name) and int(np.min(want.num_events)) < int(np.max(want.num_events))
+    _assert_same_executions(got, want)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-8, atol=1e-9)
+    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+    # and through the lane refills, the gradient (reverse mode) of the final heights
+    grad = lambda **o: jax.jit(jax.grad(lambda x: jnp.sum(hj.simulate_batch(  # noqa: E731
+        BALL, x, "flight", 0.0, 1.5, BALL_ARGS, stepsize_controller=TIGHT, **o).final_state[:, 0])))
+    np.testing.assert_allclose(grad(lanes=1, engine="batched")(x0[:3]), grad(engine="vmap")(x0[:3]),
+                               rtol=1e-7, atol=1e-9)
+
+
 def test_batched_modes_of_different_dimensions_per_execution():
     # the wall particle starts in "flight" (4-D) in one execution and in "slide" (2-D) in another
     x0 = jnp.array([[0.0, 1.0, 1.5, 3.0], [0.5, 0.2, 0.0, 0.0]])
@@ -251,6 +272,8 @@ def test_engine_choice_and_errors():
                                 completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])])
     with pytest.raises(ValueError, match="Zeno completions"):
         hj.simulate_batch(completed, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="batched")
+    with pytest.raises(ValueError, match="lanes must be a positive integer"):
+        hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, lanes=0)
     with pytest.raises(ValueError, match="engine must be"):
         hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
     with pytest.raises(ValueError, match=r"\(N, dim\)"):
