@@ -99,26 +99,25 @@ class Finals(eqx.Module):
 
 
 class LaneRecord(eqx.Module):
-    """The events of the executions: one float array (N, E, 5 + 2n), a row per event holding
-    [time, transition, target mode, simultaneous, grazing, x(t^-) (n), x(t^+) (n)], so that
-    an iteration's events are written by one scatter of contiguous rows."""
+    """The events of the executions, in the `Solution`'s own arrays and dtypes (executions
+    first), written in place by a scatter per array in iterations with events: the loop's
+    output is the record itself, not a copy (at N = 10,000, max_epochs = 128 the ball ran in
+    75-85 ms against 108-147 ms with one float array sliced into these afterwards)."""
 
-    rows: jax.Array
+    event_times: jax.Array  # (N, E)
+    transitions: jax.Array  # (N, E) int32
+    epoch_modes: jax.Array  # (N, E + 1) int32, column 0 the initial mode
+    simultaneous: jax.Array  # (N, E) bool
+    grazing: jax.Array  # (N, E) bool
+    states_before: jax.Array  # (N, E, n)
+    states_after: jax.Array  # (N, E, n)
     ys: jax.Array  # (N, S, n) saved states
     saved_modes: jax.Array  # (N, S)
     finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
 
-    def fields(self, mode0, n: int) -> dict:
-        """The `Solution` fields (lanes first)."""
-        r = self.rows
-        target = r[..., 2].astype(jnp.int32)
-        return dict(
-            event_times=r[..., 0], transitions=r[..., 1].astype(jnp.int32),
-            epoch_modes=jnp.concatenate([mode0[:, None], target], axis=1),
-            simultaneous=r[..., 3] > 0, grazing=r[..., 4] > 0,
-            states_before=r[..., 5:5 + n], states_after=r[..., 5 + n:],
-            ys=self.ys, saved_modes=self.saved_modes,
-        )
+    def fields(self) -> dict:
+        """The `Solution` fields."""
+        return {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
 
 
 def _stop(st: Lanes, pred, status: Status) -> Lanes:
@@ -384,13 +383,15 @@ class BatchedLoop:
         at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
         ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
-        empty = jnp.concatenate([jnp.array([jnp.inf, -1.0, -1.0, 0.0, 0.0], dt),
-                                 jnp.full((2 * n,), jnp.inf, dt)])
         finals = None
         if self.refill:  # every execution MAX_STEPS until its lane finishes it
             finals = Finals.of(_stop(self.fresh(jnp.arange(N), N), jnp.ones((N,), bool), Status.MAX_STEPS))
-        rec = LaneRecord(rows=jnp.broadcast_to(empty, (N, E, 5 + 2 * n)), ys=ys, saved_modes=saved_modes,
-                         finals=finals)
+        rec = LaneRecord(
+            event_times=jnp.full((N, E), jnp.inf, dt), transitions=jnp.full((N, E), -1, jnp.int32),
+            epoch_modes=jnp.full((N, E + 1), -1, jnp.int32).at[:, 0].set(mode0),
+            simultaneous=jnp.zeros((N, E), bool), grazing=jnp.zeros((N, E), bool),
+            states_before=jnp.full((N, E, n), jnp.inf, dt), states_after=jnp.full((N, E, n), jnp.inf, dt),
+            ys=ys, saved_modes=saved_modes, finals=finals)
         return st, rec
 
     # ------------------------------------------------------------------ refill
@@ -430,12 +431,17 @@ class BatchedLoop:
         jumped = kept & finite
         target = self.kern.targets[jnp.clip(k, 0, K - 1)]
         row = jnp.where(kept, st.num_events, E)  # E: dropped
-        dt = rec.rows.dtype
-        values = jnp.concatenate([
-            jnp.stack([t_ev.astype(dt), k.astype(dt), target.astype(dt), simultaneous.astype(dt),
-                       grazing.astype(dt)]),
-            y_before.astype(dt), y_after.astype(dt)])  # (5 + 2n, N)
-        rec = eqx.tree_at(lambda r: r.rows, rec, rec.rows.at[st.exec_id, row].set(values.T, mode="drop"))
+        ids = st.exec_id
+
+        def put(a, v, col=row):
+            return a.at[ids, col].set(v.astype(a.dtype), mode="drop")
+
+        rec = eqx.tree_at(
+            lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
+                       r.states_before, r.states_after), rec,
+            (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
+             put(rec.simultaneous, simultaneous), put(rec.grazing, grazing),
+             put(rec.states_before, y_before.T), put(rec.states_after, y_after.T)))
         recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
         recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
                                   st.recent_states)
