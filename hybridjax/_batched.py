@@ -15,7 +15,9 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
   block of N/4 and scattered back (lanes beyond the block wait an iteration: a step whose
   event is not located yet is taken again, identically, in the next);
-- events are written into the max_epochs-long record by one scatter per iteration;
+- events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
+  the record is the while loop's `buffers` (write-once), so reverse mode does not store it
+  in every checkpoint (the ball's reverse pass at N = 1,000: 100-144 ms -> 23-31 ms);
 - with fewer lanes than executions, a lane whose execution has ended hands in its final
   values and takes the next execution not yet started (`refill_stage`), so the batch stays
   full while executions of different lengths finish.
@@ -115,9 +117,25 @@ class LaneRecord(eqx.Module):
     saved_modes: jax.Array  # (N, S)
     finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
 
-    def fields(self) -> dict:
-        """The `Solution` fields."""
-        return {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
+    def buffers(self) -> list:
+        """The event and final-value arrays, selected by attribute as `eqxi.while_loop`'s
+        `buffers` wants them. (Not the saved states: written from a nested loop inside a
+        `lax.cond`, as buffers their reverse-mode gradient came out NaN.)"""
+        skip = ("finals", "ys", "saved_modes")
+        events = [getattr(self, f) for f in self.__dataclass_fields__ if f not in skip]
+        finals = self.finals
+        if not isinstance(finals, Finals):  # None (tree_at sees it as a leaf)
+            return events
+        return events + [getattr(finals, f) for f in Finals.__dataclass_fields__]
+
+    def fields(self, num_exec: int, max_epochs: int) -> dict:
+        """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
+        column), where writes that are not kept land (see `BatchedLoop.jump`)."""
+        out = {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
+        for f in ("event_times", "transitions", "simultaneous", "grazing", "states_before", "states_after"):
+            out[f] = out[f][:num_exec, :max_epochs]
+        out["epoch_modes"] = out["epoch_modes"][:num_exec, :max_epochs + 1]
+        return out
 
 
 def _stop(st: Lanes, pred, status: Status) -> Lanes:
@@ -383,22 +401,31 @@ class BatchedLoop:
         at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
         ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
+        # One more row (execution N) and at least one column: events not kept are written
+        # there, not dropped out of bounds (a loop buffer's reverse pass reads every written
+        # index back, and an out-of-bounds read is NaN).
+        E1 = max(E, 1)
         finals = None
-        if self.refill:  # every execution MAX_STEPS until its lane finishes it
-            finals = Finals.of(_stop(self.fresh(jnp.arange(N), N), jnp.ones((N,), bool), Status.MAX_STEPS))
+        if self.refill:  # every execution MAX_STEPS until its lane finishes it; no gradient:
+            # each entry is overwritten once by its lane (a buffer's entries are written once)
+            # (one more: the entry where lanes without an execution write)
+            unrun = _stop(self.fresh(jnp.arange(N + 1), N), jnp.ones((N + 1,), bool), Status.MAX_STEPS)
+            finals = sg(Finals.of(unrun))
         rec = LaneRecord(
-            event_times=jnp.full((N, E), jnp.inf, dt), transitions=jnp.full((N, E), -1, jnp.int32),
-            epoch_modes=jnp.full((N, E + 1), -1, jnp.int32).at[:, 0].set(mode0),
-            simultaneous=jnp.zeros((N, E), bool), grazing=jnp.zeros((N, E), bool),
-            states_before=jnp.full((N, E, n), jnp.inf, dt), states_after=jnp.full((N, E, n), jnp.inf, dt),
+            event_times=jnp.full((N + 1, E1), jnp.inf, dt), transitions=jnp.full((N + 1, E1), -1, jnp.int32),
+            epoch_modes=jnp.full((N + 1, E1 + 1), -1, jnp.int32).at[:N, 0].set(mode0),
+            simultaneous=jnp.zeros((N + 1, E1), bool), grazing=jnp.zeros((N + 1, E1), bool),
+            states_before=jnp.full((N + 1, E1, n), jnp.inf, dt),
+            states_after=jnp.full((N + 1, E1, n), jnp.inf, dt),
             ys=ys, saved_modes=saved_modes, finals=finals)
         return st, rec
 
     # ------------------------------------------------------------------ refill
     def flush(self, st: Lanes, rec: LaneRecord, mask) -> LaneRecord:
         """Write the final values of the lanes in `mask` to their executions' `finals`."""
-        ids = jnp.where(mask, st.exec_id, self.num_exec)  # num_exec: dropped
-        finals = jtu.tree_map(lambda f, v: f.at[..., ids].set(v, mode="drop"), rec.finals, Finals.of(st))
+        ids = jnp.where(mask, st.exec_id, self.num_exec)  # num_exec: the entry not returned
+        finals = Finals(**{f: getattr(rec.finals, f).at[..., ids].set(getattr(st, f))
+                           for f in Finals.__dataclass_fields__})  # (field by field: they are buffers)
         return eqx.tree_at(lambda r: r.finals, rec, finals)
 
     def refill_stage(self, st: Lanes, rec: LaneRecord):
@@ -430,11 +457,11 @@ class BatchedLoop:
         finite = _rows_all(jnp.isfinite(y_after))
         jumped = kept & finite
         target = self.kern.targets[jnp.clip(k, 0, K - 1)]
-        row = jnp.where(kept, st.num_events, E)  # E: dropped
-        ids = st.exec_id
+        row = jnp.where(kept, st.num_events, 0)
+        ids = jnp.where(kept, st.exec_id, self.num_exec)  # num_exec: the row not returned
 
         def put(a, v, col=row):
-            return a.at[ids, col].set(v.astype(a.dtype), mode="drop")
+            return a.at[ids, col].set(v.astype(a.dtype))
 
         rec = eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
@@ -731,8 +758,7 @@ class BatchedLoop:
 
         def run(carry):
             return eqxi.while_loop(lambda c: jnp.any(pending(c[1])), window, carry,
-                                   max_steps=-(-S // SAVE_WINDOW) + 1,
-                                   kind=self.loop_kind)
+                                   max_steps=-(-S // SAVE_WINDOW) + 1, kind=self.loop_kind)
 
         rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
         return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
@@ -757,6 +783,9 @@ class BatchedLoop:
             self.body,
             self.init(t0, y0, mode0),
             max_steps=rounds * (self.max_steps + self.max_epochs + 2),
+            # The record is write-only in the loop, each entry written once: as buffers it is
+            # updated in place and kept out of the reverse pass's checkpoints.
+            buffers=lambda c: c[1].buffers(),
             kind=self.loop_kind,
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
@@ -764,4 +793,5 @@ class BatchedLoop:
         if not self.refill:
             return Finals.of(st), rec
         rec = self.flush(st, rec, st.exec_id < self.num_exec)
-        return rec.finals, eqx.tree_at(lambda r: r.finals, rec, None, is_leaf=lambda x: x is None)
+        finals = jtu.tree_map(lambda a: a[..., :self.num_exec], rec.finals)
+        return finals, eqx.tree_at(lambda r: r.finals, rec, None, is_leaf=lambda x: x is None)

@@ -173,7 +173,7 @@ def simulate_batch(
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
     return Solution(
-        **rec.fields(), num_events=final.num_events, zeno_time=final.zeno_time,
+        **rec.fields(N, int(max_epochs)), num_events=final.num_events, zeno_time=final.zeno_time,
         zeno_state=final.zeno_state.T, final_time=final.t, final_mode=final.mode,
         final_state=final.y.T, status=as_status(final.status),
         ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape), num_steps=final.num_steps,

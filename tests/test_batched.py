@@ -212,6 +212,21 @@ def test_batched_gradient_of_saved_states_matches_per_execution_engine():
     np.testing.assert_allclose(saved("batched")(x0), saved("vmap")(x0), rtol=1e-7, atol=1e-9)
 
 
+def test_batched_gradient_of_event_times_and_post_event_states_matches_per_execution_engine():
+    # the record is written in place (loop buffers kept out of the checkpoints): its gradient,
+    # through the gathered block (block=1) and lane refills (lanes=2), against vmap(simulate)
+    def loss(engine, **o):
+        def f(x):
+            s = hj.simulate_batch(BALL, x, "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT,
+                                  max_epochs=16, engine=engine, **o)
+            times = jnp.where(jnp.isfinite(s.event_times), s.event_times, 0.0) * jnp.arange(1.0, 17.0)[None]
+            return jnp.sum(times) + jnp.sum(jnp.where(jnp.isfinite(s.states_after), s.states_after, 0.0))
+        return jax.jit(jax.grad(f))
+
+    x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5]])
+    np.testing.assert_allclose(loss("batched", block=1, lanes=2)(x0), loss("vmap")(x0), rtol=1e-7, atol=1e-9)
+
+
 def test_batched_engine_in_float32_matches_the_closed_form():
     x0 = np.array([[1.0, 0.0], [0.6, 0.8]], np.float32)
     sol = hj.simulate_batch(BALL, jnp.asarray(x0), "flight", 0.0, 2.0, BALL_ARGS, engine="batched",
