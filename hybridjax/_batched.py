@@ -106,13 +106,14 @@ class LaneRecord(eqx.Module):
     output is the record itself, not a copy (at N = 10,000, max_epochs = 128 the ball ran in
     75-85 ms against 108-147 ms with one float array sliced into these afterwards)."""
 
-    event_times: jax.Array  # (N, E)
-    transitions: jax.Array  # (N, E) int32
-    epoch_modes: jax.Array  # (N, E + 1) int32, column 0 the initial mode
-    simultaneous: jax.Array  # (N, E) bool
-    grazing: jax.Array  # (N, E) bool
-    states_before: jax.Array  # (N, E, n)
-    states_after: jax.Array  # (N, E, n)
+    # (N + 1, E): row N takes the writes of events not kept (`BatchedLoop.jump`); E >= 1
+    event_times: jax.Array
+    transitions: jax.Array  # int32
+    epoch_modes: jax.Array  # (N + 1, E + 1) int32, column 0 the initial mode
+    simultaneous: jax.Array  # bool
+    grazing: jax.Array  # bool
+    states_before: jax.Array  # (N + 1, E, n)
+    states_after: jax.Array  # (N + 1, E, n)
     ys: jax.Array  # (N, S, n) saved states
     saved_modes: jax.Array  # (N, S)
     finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
@@ -406,9 +407,9 @@ class BatchedLoop:
         # index back, and an out-of-bounds read is NaN).
         E1 = max(E, 1)
         finals = None
-        if self.refill:  # every execution MAX_STEPS until its lane finishes it; no gradient:
-            # each entry is overwritten once by its lane (a buffer's entries are written once)
-            # (one more: the entry where lanes without an execution write)
+        if self.refill:
+            # Every execution MAX_STEPS until its lane hands it in, plus entry N where lanes
+            # without an execution write; no gradient, as each entry is overwritten once.
             unrun = _stop(self.fresh(jnp.arange(N + 1), N), jnp.ones((N + 1,), bool), Status.MAX_STEPS)
             finals = sg(Finals.of(unrun))
         rec = LaneRecord(
