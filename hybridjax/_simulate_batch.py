@@ -118,7 +118,7 @@ def simulate_batch(
     if engine not in ("auto", "batched", "vmap"):
         raise ValueError(f"engine must be 'auto', 'batched' or 'vmap', got {engine!r}.")
     if lanes is not None and (not isinstance(lanes, (int, np.integer)) or lanes < 1):
-        raise ValueError(f"lanes must be a positive integer (or None: one per execution), got {lanes!r}.")
+        raise ValueError(f"lanes must be a positive integer (or None: the default), got {lanes!r}.")
     x0_arr = jnp.asarray(x0)
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
@@ -160,7 +160,7 @@ def simulate_batch(
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1 = eqx.error_if(t1, t1 < t0, "simulate_batch: t1 must be >= t0.")
-    num_lanes = int(lanes) if lanes else (N if N <= 20_000 else 10_000)
+    num_lanes = int(lanes) if lanes is not None else (N if N <= 20_000 else 10_000)
     loop = BatchedLoop(
         system, t1=t1, args=args, args_axis=0 if args_batched else None,
         solver=UnrolledERK(solver_p), controller=FastIController(controller), dt0=dt0,
