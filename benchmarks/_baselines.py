@@ -8,6 +8,11 @@
   step-size controller given. This is the "plain
   diffrax lock-step loop" of the benchmarks' ratios.
 
+- `ball_bare_loop`: problem A only, on the bare lanes-last loop #7's prototype describes
+  (hand-written Tsit5 step, one crossing test, Newton on the dense output under a `lax.cond`,
+  no record, saves or checks): the ceiling of what an event-driven JAX integrator reaches on
+  this machine, against which a general engine's cost is read.
+
 `diffrax_lockstep` takes the problem's `HybridSystem` and uses its user functions, so the
 engines solve the same model; `scipy_loop` uses the problem's numpy twins of them.
 """
@@ -94,3 +99,114 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
 
     del n
     return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+
+
+def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
+    """The bouncing ball on the bare lanes-last loop that #7's prototype describes: the fastest
+    event-driven integrator we know how to write in JAX for this one problem, as a ceiling for
+    what a general engine can reach (it knows the flow, the single guard h = 0 and the reset).
+
+    One `lax.while_loop`; every lane holds its own t, h, step size and its state as one vector
+    per component (lanes last); each iteration every running lane takes one Tsit5 step
+    (diffrax's tableau), with diffrax's I controller (safety 0.9, factors 0.2 / 10) and its
+    first step (Hairer's rule, once at t0). A crossing (h > 0 at the step's start, <= 0 at its
+    end: for a parabola that is every crossing) is located under a `lax.cond` taken only when
+    some lane has one: a bracketed Newton iteration on the step's dense output (Chebyshev
+    series of diffrax's interpolant) until the bracket is below 1e-13 of the step. The reset
+    v -> -e v is applied there, and the next step is the controller's proposal capped at the
+    remaining flight time's order. No record of events, no saves, no checks of any kind.
+    Returns `f(x0 (N, 2), g, e, t1) -> (num_events (N,), final_state (N, 2))`.
+    """
+    # The dense output's Chebyshev coefficients as the batched engine reads them off diffrax's
+    # interpolation (not retyped), and its trace-time weighted sum.
+    from hybridjax._batched import chebyshev_weights
+    from hybridjax._fast_rk import weighted_sum
+
+    solver = diffrax.Tsit5()
+    tab = type(solver).tableau
+    a_ = [[float(x) for x in row] for row in tab.a_lower]
+    b_err = [float(x) for x in tab.b_error]
+    cheb = chebyshev_weights(solver.interpolation_cls, len(a_) + 1, jnp.float64)
+
+    def clenshaw(coeffs, x):
+        b1 = jnp.zeros_like(coeffs[0])
+        b2 = b1
+        for c in coeffs[:0:-1]:
+            b1, b2 = 2 * x * b1 - b2 + c, b1
+        return x * b1 - b2 + coeffs[0]
+
+    @jax.jit
+    def run(x0, g, e, t1):
+        N = x0.shape[0]
+
+        def F(y):
+            return jnp.stack([y[1], jnp.full_like(y[1], -g)])
+
+        y = x0.T
+        f0 = F(y)
+        # Hairer's first step (as diffrax's PIDController.init), per lane.
+        scale = atol + rtol * jnp.abs(y)
+        d0 = jnp.sqrt(jnp.mean((y / scale) ** 2, 0))
+        d1 = jnp.sqrt(jnp.mean((f0 / scale) ** 2, 0))
+        small = (d0 < 1e-5) | (d1 < 1e-5)
+        h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
+        d2 = jnp.sqrt(jnp.mean(((F(y + h0 * f0) - f0) / scale) ** 2, 0)) / h0
+        md = jnp.maximum(d1, d2)
+        h1 = jnp.where(md <= 1e-15, jnp.maximum(1e-6, 1e-3 * h0), (0.01 / md) ** (1 / 5))
+        dt = jnp.minimum(100 * h0, h1)
+
+        def body(c):
+            t, y, dt, f0, done, count, it = c
+            tn = jnp.minimum(t + dt, t1)
+            hh = tn - t
+            ks = [f0 * hh]
+            z, fl = y, f0
+            for ai in a_:  # the field is autonomous: the nodes c_i do not enter
+                z = y + weighted_sum(ai, ks, y)
+                fl = F(z)
+                ks.append(fl * hh)
+            y1, err = z, weighted_sum(b_err, ks, y)  # Tsit5: y1 is the last stage's point
+            sc = atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))
+            en = jnp.sqrt(jnp.mean((err / sc) ** 2, 0))
+            keep = en < 1
+            fac = jnp.clip(0.9 * en ** (-1 / 5), jnp.where(keep, 1.0, 0.2), jnp.where(keep, 10.0, 0.9))
+            acc = ~done & keep
+            cross = acc & (y1[0] <= 0) & (y[0] > 0)
+
+            def locate(_):
+                coeffs = [r[0] * y[0] + r[1] * y1[0] + weighted_sum(r[2:], [k[0] for k in ks], y[0])
+                          for r in cheb]
+
+                def newton(c):
+                    a, b, x, i = c
+                    fx, dfx = jax.jvp(lambda s: clenshaw(coeffs, 2 * s - 1), (x,), (jnp.ones_like(x),))
+                    a, b = jnp.where(fx > 0, x, a), jnp.where(fx <= 0, x, b)
+                    xn = x - fx / jnp.where(dfx != 0, dfx, 1.0)
+                    return a, b, jnp.where((xn > a) & (xn < b), xn, 0.5 * (a + b)), i + 1
+
+                def unconverged(c):
+                    a, b, _, i = c
+                    return jnp.any(cross & (b - a > 1e-13)) & (i < 64)
+
+                den = y[0] - y1[0]
+                x = jnp.clip(jnp.where(cross, y[0] / jnp.where(cross, den, 1.0), 0.5), 0.0, 1.0)
+                _, b, *_ = lax.while_loop(unconverged, newton, (jnp.zeros(N), jnp.ones(N), x, 0))
+                return jnp.where(cross, b, 1.0)
+
+            th = lax.cond(jnp.any(cross), locate, lambda _: jnp.ones(N), None)
+            coeffs2 = [r[0] * y[1] + r[1] * y1[1] + weighted_sum(r[2:], [k[1] for k in ks], y[1]) for r in cheb]
+            v_ev = clenshaw(coeffs2, 2 * th - 1)
+            y_reset = jnp.stack([jnp.zeros_like(v_ev), -e * v_ev])
+            t_new = jnp.where(cross, t + th * hh, jnp.where(acc, tn, t))
+            y_new = jnp.where(cross, y_reset, jnp.where(acc, y1, y))
+            f_new = jnp.where(cross, F(y_reset), jnp.where(acc, fl, f0))
+            # After a bounce the next flight lasts 2 e |v| / g: the first step stays within it.
+            dt_new = jnp.where(cross, jnp.minimum(hh * fac, e * jnp.abs(v_ev) / g), hh * fac)
+            done = done | (acc & ~cross & (tn >= t1))
+            return t_new, y_new, jnp.where(done, dt, dt_new), f_new, done, count + cross, it + 1
+
+        init = (jnp.zeros(N), y, dt, f0, jnp.zeros(N, bool), jnp.zeros(N, jnp.int32), 0)
+        out = lax.while_loop(lambda c: jnp.any(~c[4]) & (c[6] < max_iters), body, init)
+        return out[5], out[1].T
+
+    return run

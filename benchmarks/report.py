@@ -72,6 +72,15 @@ def section(res: dict) -> str:
             out += ["", f"The speed limit for {name}: its closed form, jitted over the same batch (no integration, "
                     f"no root finding): {_fmt_rate(x['exec_per_s'])}/s, error {x['error']:.0e}; hybridjax reaches "
                     f"{x['ratio']:.3g}x of it."]
+        if "bare_loop" in b:
+            x = b["bare_loop"]
+            out += ["", f"What a bare hand-written loop reaches on {name} (`benchmarks/_baselines.py: ball_bare_loop`, "
+                    "the lanes-last recipe of #7's prototype with nothing general: one Tsit5 step per lane per "
+                    "iteration, the one guard and reset written in, no record, saves or checks), same run: "
+                    f"{_fmt_rate(x['exec_per_s'])}/s, error {x['error']:.0e}, {x['wrong']} wrong; that is "
+                    f"{x['lockstep_ratio']:.3g}x the diffrax lock-step loop and "
+                    f"{x['exec_per_s'] / b['closed_form_jax']['exec_per_s']:.3g}x the closed form; hybridjax reaches "
+                    f"{x['ratio']:.3g}x of it."]
     out += ["", "**Accuracy presets** (`hj.simulate(..., **hj.accuracy_preset(name))`, float64):", "",
             "| preset | " + " | ".join(dict.fromkeys(r["problem"] for r in res["presets"])) + " |",
             "|---|" + "---|" * len(dict.fromkeys(r["problem"] for r in res["presets"]))]

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import problems as P
-from _baselines import diffrax_lockstep, scipy_loop
+from _baselines import ball_bare_loop, diffrax_lockstep, scipy_loop
 from _common import machine_info, write_json
 
 import hybridjax as hj
@@ -160,6 +160,14 @@ def baselines(problem, truths, x0, m0, n_scipy, n_lockstep, ours_per_s):
         err, wrong = errors(problem, truths[:n_lockstep], res[1], res[0])
         out["closed_form_jax"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
                                       compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
+        # The bare hand-written loop of #7's prototype: how fast event-driven integration of this
+        # one problem gets in JAX on this machine, with nothing general about it.
+        bare = ball_bare_loop()
+        c, run_s, res = timed_run(lambda x: bare(x, 9.8, 0.8, problem.t1), xa)
+        err, wrong = errors(problem, truths[:n_lockstep], res[1], res[0])
+        out["bare_loop"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
+                                compile_s=c, ratio=ours_per_s / (n_lockstep / run_s),
+                                lockstep_ratio=(n_lockstep / run_s) / out["diffrax_lockstep"]["exec_per_s"])
     # hybridjax's per-execution engine under vmap (with its fast RK step, and with diffrax's own
     # solver.step / adapt_step_size)
     for key, engine in (("engine_vmap", "vmap"), ("engine_diffrax", "diffrax")):
@@ -350,7 +358,7 @@ def main():
             b = baselines(prob, tr, x0, m0, max(int(n_scipy * scale), 2), max(int(n_lock * scale), 10), ours_rate)
             results["baselines"][prob.name] = b
             for key in ("scipy_RK45", "scipy_DOP853", "diffrax_lockstep", "engine_vmap", "engine_diffrax",
-                        "closed_form_jax"):
+                        "closed_form_jax", "bare_loop"):
                 if key not in b:
                     continue
                 print(f"  {key:>17}: {b[key]['exec_per_s']:9.1f}/s error {b[key]['error']:8.1e} wrong {b[key]['wrong']}"

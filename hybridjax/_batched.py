@@ -246,6 +246,7 @@ def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str
 
 
 SAVE_WINDOW = 16  # sorted save times interpolated per pass
+PER_COMPONENT_MAX_DIM = 8  # `BatchedLoop.flows` traces the field once per component up to this
 CHEB_DEGREE = 9  # >= the degree in theta of every unrolled solver's dense output
 
 
@@ -373,8 +374,18 @@ class BatchedLoop:
         return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop")
 
     def flows(self, mode, t, y, args):
-        """F_mode(t, y) on every lane: (n, N)."""
-        return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
+        """F_mode(t, y) on every lane: (n, N).
+
+        One vmapped call per component, stacked: vmapped whole, the field comes out (N, n) and
+        every stage that reads it transposes it inside its fusion (strided reads, no SIMD); per
+        component, XLA folds each slice into the user's `jnp.array([...])` and common
+        subexpressions are computed once. The pure step on 10,000 lanes: 42 -> 34 ms
+        (oscillator, 77 steps; same values).
+        """
+        if self.kern.n > PER_COMPONENT_MAX_DIM:  # n traced copies of the field: compile time
+            return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
+        return jnp.stack([self.lane_map(lambda m, tt, yy, a, i=i: self.kern.flow(m, tt, yy, a)[i],
+                                        mode, t, y, args=args) for i in range(self.kern.n)])
 
     # ------------------------------------------------------------------ init
     def fresh(self, ids, next_exec) -> Lanes:
