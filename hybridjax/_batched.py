@@ -13,7 +13,7 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
 - the work only some lanes need (the epoch-start test with its Lie derivatives and Hairer's
   first step; root and minimum location, the implicit-function event point and the reset)
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
-  block of N/4 and scattered back (lanes beyond the block wait an iteration: a step whose
+  block of lanes/4 and scattered back (lanes beyond the block wait an iteration: a step whose
   event is not located yet is taken again, identically, in the next);
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
@@ -323,7 +323,7 @@ class BatchedLoop:
         self.save_ts = jnp.zeros((0,), dtype) if save_ts is None else save_ts
         self.save_order = jnp.argsort(self.save_ts)
         self.save_sorted = self.save_ts[self.save_order]
-        # Small batches compute the rare work on every lane; large ones on a block of N/4.
+        # Small batches compute the rare work on every lane; large ones on a block of lanes/4.
         self.block = (lanes if lanes <= 256 else max(256, lanes // 4)) if block is None else block
         self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
         self.error_order = solver.error_order(self.terms)
