@@ -10,8 +10,8 @@
 
 - `ball_bare_loop`: problem A only, on the bare lanes-last loop #7's prototype describes
   (hand-written Tsit5 step, one crossing test, Newton on the dense output under a `lax.cond`,
-  no record, saves or checks): the ceiling of what an event-driven JAX integrator reaches on
-  this machine, against which a general engine's cost is read.
+  no record, saves or status checks): what that recipe reaches on this machine with nothing
+  general, against which a general engine's cost is read.
 
 `diffrax_lockstep` takes the problem's `HybridSystem` and uses its user functions, so the
 engines solve the same model; `scipy_loop` uses the problem's numpy twins of them.
@@ -102,9 +102,9 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
 
 
 def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
-    """The bouncing ball on the bare lanes-last loop that #7's prototype describes: the fastest
-    event-driven integrator we know how to write in JAX for this one problem, as a ceiling for
-    what a general engine can reach (it knows the flow, the single guard h = 0 and the reset).
+    """The bouncing ball on the bare lanes-last loop that #7's prototype describes, written for
+    this one problem (it knows the flow, the single guard h = 0 and the reset): a reference for
+    what a general engine could reach, not a proven bound.
 
     One `lax.while_loop`; every lane holds its own t, h, step size and its state as one vector
     per component (lanes last); each iteration every running lane takes one Tsit5 step
@@ -113,8 +113,8 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
     end: for a parabola that is every crossing) is located under a `lax.cond` taken only when
     some lane has one: a bracketed Newton iteration on the step's dense output (Chebyshev
     series of diffrax's interpolant) until the bracket is below 1e-13 of the step. The reset
-    v -> -e v is applied there, and the next step is the controller's proposal capped at the
-    remaining flight time's order. No record of events, no saves, no checks of any kind.
+    v -> -e v is applied there, and the next step is the controller's proposal capped at half
+    the next flight's duration (e |v| / g). No record of events, no saves, no status checks.
     Returns `f(x0 (N, 2), g, e, t1) -> (num_events (N,), final_state (N, 2))`.
     """
     # The dense output's Chebyshev coefficients as the batched engine reads them off diffrax's
