@@ -15,11 +15,26 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._batched import ChebyshevDense, chebyshev_weights
+from hybridjax._batched import PER_COMPONENT_MAX_DIM, ChebyshevDense, chebyshev_weights
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
 
 THERMO_ARGS = dict(a=0.1, T_amb=5.0, P_heat=2.5, P_cool=2.0, s=20.0)
+
+
+def _ball_with_passengers(k: int = 7):
+    # A ball carrying k decaying coordinates: a 9-dimensional state, above the dimension up to
+    # which the batched engine evaluates the field one component at a time.
+    rates = jnp.arange(1.0, k + 1.0)
+    flight = hj.Mode("flight", lambda t, x, p: jnp.concatenate([jnp.array([x[1], -p["g"]]), -rates * x[2:]]),
+                     2 + k)
+    bounce = hj.Transition("flight", "flight", guard=lambda t, x, p: x[0],
+                           reset=lambda t, x, p: x.at[1].multiply(-p["e"]))
+    system = hj.HybridSystem([flight], [bounce])
+    assert system.max_dim > PER_COMPONENT_MAX_DIM
+    return system
+
+
 CASES = {
     "bouncing ball": (BALL, [1.0, 0.3], "flight", 3.0, BALL_ARGS),
     "thermostat": (THERMO, [19.0], "off", 40.0, THERMO_ARGS),
@@ -29,6 +44,7 @@ CASES = {
     "pendulum wall": (examples.pendulum_wall(), [-0.5, 0.8], "swing", 9.0, {"theta_w": 0.2, "e": 0.7}),
     "van der pol relay": (examples.van_der_pol_relay(), [-1.0, 0.5], 0, 10.0, 5.0),
     "stiff relay, mild": (examples.stiff_relay(), [0.0, 0.0], 0, 5.0, 20.0),
+    "9-dimensional ball": (_ball_with_passengers(), [1.0, 0.3] + [1.0] * 7, "flight", 2.0, BALL_ARGS),
 }
 
 
