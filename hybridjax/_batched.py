@@ -46,6 +46,7 @@ from ._events import (
     locate_root,
     start_decision,
 )
+from ._fast_rk import fold as _fold
 from ._fast_rk import weighted_sum
 from ._kernels import Kernels, mask_inputs
 from ._loop import event_point
@@ -148,18 +149,6 @@ def _stop(st: Lanes, pred, status: Status) -> Lanes:
 def as_status(codes) -> Status:
     """A `Status` item holding the integer codes `codes` (one per lane)."""
     return eqx.tree_at(lambda s: s._value, Status.T1_REACHED, jnp.asarray(codes, jnp.int32))
-
-
-def _fold(op, x):
-    """Reduce over the leading axis by a Python loop of elementwise ops: XLA:CPU runs a
-    reduction over the outer axis of a (small, N) array several times slower than the
-    same sum written out (which also fuses with its inputs)."""
-    if x.shape[0] > 64:
-        return {jnp.add: jnp.sum, jnp.logical_and: jnp.all, jnp.logical_or: jnp.any}[op](x, axis=0)
-    out = x[0]
-    for i in range(1, x.shape[0]):
-        out = op(out, x[i])
-    return out
 
 
 def _rows_all(x):
@@ -372,21 +361,23 @@ class BatchedLoop:
         return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
     def on_lanes(self, st: Lanes, mask, fn, *tree):
-        """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done)`.
+        """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done, idx)`.
 
         The first `block` lanes in `mask` are gathered into a block, computed and scattered
-        back (`done` marks them; other lanes' outputs are zeros). Lanes beyond the block wait
-        for a later iteration: each function is compiled once, for one block size.
+        back (`done` marks them; other lanes' outputs are zeros; `idx` (block,) are their
+        indices, N where the block has room to spare). Lanes beyond the block wait for a
+        later iteration: each function is compiled once, for one block size. Without a block
+        (every lane computed), `idx` is None.
         """
         N, M = self.N, self.block
         if M >= N:
-            return self.lane_map(fn, *tree, args=self.lane_args(st)), mask
+            return self.lane_map(fn, *tree, args=self.lane_args(st)), mask, None
         idx = jnp.nonzero(mask, size=M, fill_value=N)[0]
         sub = jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
         out = self.lane_map(fn, *sub, args=self.lane_args(st, idx))
         out = jtu.tree_map(
             lambda o: jnp.zeros(o.shape[:-1] + (N,), o.dtype).at[..., idx].set(o, mode="drop"), out)
-        return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop")
+        return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop"), idx
 
     def flows(self, mode, t, y, args):
         """F_mode(t, y) on every lane: (n, N).
@@ -474,9 +465,11 @@ class BatchedLoop:
 
     # ------------------------------------------------------------------ jump
     def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool):
+             grazing, zero_length: bool, lanes=None):
         """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
-        the caller); then stop on too many epochs, non-finite values, chattering or Zeno."""
+        the caller); then stop on too many epochs, non-finite values, chattering or Zeno.
+        `lanes`: the indices (`on_lanes`' `idx`) of the only lanes `mask` can hold; the record
+        is written from those alone (a scatter of a block, not of every lane)."""
         E = self.max_epochs
         K = self.kern.num_transitions
         full = st.num_events >= E
@@ -486,16 +479,27 @@ class BatchedLoop:
         target = self.kern.targets[jnp.clip(k, 0, K - 1)]
         row = jnp.where(kept, st.num_events, 0)
         ids = jnp.where(kept, st.exec_id, self.num_exec)  # num_exec: the row not returned
+        if lanes is None:
+            def pick(v):
+                return v
+        else:
+            def pick(v):  # the block's lanes (lanes last); padding slots write the row not returned
+                return jnp.take(v, lanes, axis=-1, mode="clip")
+
+            ids = jnp.where(lanes < self.N, pick(ids), self.num_exec)
 
         def put(a, v, col=row):
-            return a.at[ids, col].set(v.astype(a.dtype))
+            return a.at[ids, pick(col)].set(pick(v).astype(a.dtype))
+
+        def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
+            return a.at[ids, pick(row)].set(pick(v).T.astype(a.dtype))
 
         rec = eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
                        r.states_before, r.states_after), rec,
             (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
              put(rec.simultaneous, simultaneous), put(rec.grazing, grazing),
-             put(rec.states_before, y_before.T), put(rec.states_after, y_after.T)))
+             put_state(rec.states_before, y_before), put_state(rec.states_after, y_after)))
         recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
         recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
                                   st.recent_states)
@@ -518,7 +522,11 @@ class BatchedLoop:
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
                 lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
-            )(st.recent_times, st.recent_states, st.t1)
+            )(pick(st.recent_times), pick(st.recent_states), pick(st.t1))
+            if lanes is not None:  # back to every lane; `jumped` holds only on `lanes`
+                is_zeno, t_inf, x_inf = (
+                    jnp.zeros(v.shape[:-1] + (self.N,), v.dtype).at[..., lanes].set(v, mode="drop")
+                    for v in (is_zeno, t_inf, x_inf))
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
@@ -554,7 +562,7 @@ class BatchedLoop:
 
         def run(carry):
             st, rec = carry
-            out, handled = self.on_lanes(st, active, self._start_lane, st.t, st.y, st.mode, st.h, st.t1)
+            out, handled, idx = self.on_lanes(st, active, self._start_lane, st.t, st.y, st.mode, st.h, st.t1)
             active_now = active & handled  # the others stay at the start of their epoch
             fire = active_now & out["fire"]
             K = self.kern.num_transitions
@@ -567,7 +575,7 @@ class BatchedLoop:
             st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
             if K:
                 st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
-                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True)
+                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True, lanes=idx)
             st = _stop(st, active_now & ~out["finite"], Status.NONFINITE)
             return st, rec
 
@@ -684,10 +692,11 @@ class BatchedLoop:
                      for tt, yy, yd in zip(times, samples, slopes, strict=True)]
             G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (W, N) each
             # Zeros where no lane steps: every use below is masked by `stepping`.
-            G_e, D_e = _materialize((G_e, D_e), jnp.any(stepping))
+            some_step = jnp.any(stepping)
+            G_e, D_e = _materialize((G_e, D_e), some_step)
             finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
             ok = keep & finite_G & stepping
-            has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, jnp.any(stepping))
+            has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
             has = has & ok
             suspect = suspect & ok & (~has | (i_d < j))
             need = _rows_any(has | suspect)
@@ -706,9 +715,9 @@ class BatchedLoop:
                 # Lanes with an event in this step: undo the acceptance above, then locate,
                 # jump, and start the next epoch (all only when some lane needs it).
                 new, rec = carry
-                out, handled = self.on_lanes(st, need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
-                                             st.mode, has, j, suspect, i_d, x0_d, jnp.stack(times),
-                                             dt_new, st.t1)
+                out, handled, idx = self.on_lanes(st, need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
+                                                  st.mode, has, j, suspect, i_d, x0_d, jnp.stack(times),
+                                                  dt_new, st.t1)
                 ev = need & handled & out["event"]
                 # Lanes beyond the block take this step again next iteration (same t, h, y:
                 # the same step), as if it had not been tried.
@@ -731,7 +740,7 @@ class BatchedLoop:
                     jumping = ev & (out["k"] < K)
                     new, rec = self.jump(new, rec, jumping, out["k"], out["t_ev"], out["y_before"],
                                          out["y_after"], out["simultaneous"], out["grazing"],
-                                         zero_length=False)
+                                         zero_length=False, lanes=idx)
                     # The new epoch's start test was done with the event: where no guard fires
                     # at once, start it here (the start stage handles the rest next iteration).
                     go = (jumping & new.at_start & ~new.done & ~out["next_fire"] & out["next_finite"]

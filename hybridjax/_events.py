@@ -22,6 +22,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ._fast_rk import fold
+
 
 def trending_negative(L1, L2, L3, scale1, eps) -> jax.Array:
     """First non-zero Lie derivative negative. L1 counts as zero below 64 eps * scale1."""
@@ -55,7 +57,7 @@ def departure_step_bound(jets, outgoing, fire) -> jax.Array:
     departing = outgoing & (jnp.abs(L0) <= band) & ~fire & (L1 > 0) & (L2 < 0)
     safe_L2 = jnp.where(departing, L2, -1.0)
     tau = jnp.where(departing, L1 / (-safe_L2), jnp.inf)
-    return jnp.min(tau, initial=jnp.inf)
+    return fold(jnp.minimum, tau) if tau.shape[0] else jnp.asarray(jnp.inf, tau.dtype)
 
 
 def first_crossings(g_start, samples):
@@ -74,11 +76,12 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
 
     Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
     falling back to bisection when a Newton step leaves the bracket or is not at most half
-    the step before last (Numerical Recipes' rtsafe). Each iterate x_k is flanked by two
-    probes at +-delta_k, delta_k = 2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]:
-    once Newton converges quadratically the root lies well within |x_k - x_{k-1}| of x_k, so
-    the probes straddle it and the bracket closes at once (a fixed tiny delta would wait for
-    Newton to land within rounding noise of the root, and bisect ~40 times instead). A final
+    the step before last (Numerical Recipes' rtsafe). Each iterate x_k is followed by a probe
+    at x_k + delta_k if f(x_k) > 0, else at x_k - delta_k (towards the root), delta_k =
+    2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]: once Newton converges
+    quadratically the root lies well within |x_k - x_{k-1}| of x_k, so x_k and the probe
+    straddle it and the bracket closes at once (a fixed tiny delta would wait for Newton to
+    land within rounding noise of the root, and bisect ~40 times instead). A final
     Newton step from the right end then puts it a few ulps past the root (g <= 0 kept).
     No gradients: the caller differentiates the event time by the implicit function theorem.
     """
@@ -97,10 +100,13 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
         fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
         floor = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
         delta = jnp.clip(2 * jnp.abs(dx), floor, jnp.maximum(0.5 * tol, floor))
-        # The three points are written out, not stacked: elementwise code that XLA fuses into
-        # a few kernels per iteration (a stack and a reduction over it cost ~10x more under vmap).
+        # One probe, on the side of x where the root lies (a probe on the other side moves the
+        # bracket only if f changes sign twice within delta). The two points are written out,
+        # not stacked: elementwise code that XLA fuses into a few kernels per iteration (a stack
+        # and a reduction over it cost ~10x more under vmap).
+        probe = jnp.clip(jnp.where(fx > 0, x + delta, x - delta), a, b)
         a_new, b_new = a, b
-        for p, fp in ((x, fx), *((q, f(q)) for q in (jnp.clip(x - delta, a, b), jnp.clip(x + delta, a, b)))):
+        for p, fp in ((x, fx), (probe, f(probe))):
             finite = jnp.isfinite(fp)
             a_new = jnp.where(finite & (fp > 0), jnp.maximum(a_new, p), a_new)
             b_new = jnp.where(finite & (fp <= 0), jnp.minimum(b_new, p), b_new)

@@ -46,6 +46,7 @@ from ._events import (
     locate_root,
     start_decision,
 )
+from ._fast_rk import unrolled_sum
 from ._kernels import Kernels, mask_inputs
 from ._status import Status
 from ._zeno import detect_zeno
@@ -629,8 +630,8 @@ def event_point(kern, eps, mode, k, t_star, interp, args):
 
     g_val = g(t_star, x_star)
     gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
-    gdot = sg(gt + jnp.sum(gx * sg(F)))  # dg/dt along the true vector field (no dot: vmap)
-    size = jnp.abs(gt) + jnp.linalg.norm(gx) * jnp.linalg.norm(sg(F))
+    gdot = sg(gt + unrolled_sum(gx * sg(F)))  # dg/dt along the true vector field (see `fold`)
+    size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(sg(F) ** 2))
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
     safe = jnp.where(gdot != 0, gdot, 1.0)
     t_ev = t_star - (g_val - sg(g_val)) / safe
