@@ -28,6 +28,7 @@ def machine_info() -> dict:
         device=str(jax.devices()[0]), python=platform.python_version(),
         jax=jax.__version__, diffrax=diffrax.__version__, equinox=equinox.__version__,
         numpy=numpy.__version__, x64=bool(jax.config.jax_enable_x64),
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
     )
 
 
