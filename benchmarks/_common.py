@@ -3,6 +3,8 @@
 import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -51,3 +53,16 @@ def write_json(name: str, payload: dict) -> Path:
     path = out / f"{name}.json"
     path.write_text(json.dumps(payload, indent=2, default=float))
     return path
+
+
+def run_per_setting(script: str, settings: dict[str, str]) -> dict:
+    """`python script --one` once per XLA setting ({name: XLA_FLAGS to add}), each in a fresh
+    process (JAX reads XLA_FLAGS once, when it creates its CPU backend): {name: the JSON that
+    the run printed on its last line}."""
+    out = {}
+    for name, flags in settings.items():
+        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
+        res = subprocess.run([sys.executable, script, "--one"], env=env, capture_output=True, text=True,
+                             check=True, cwd=os.path.dirname(os.path.abspath(script)))
+        out[name] = json.loads(res.stdout.splitlines()[-1])
+    return out

@@ -14,8 +14,6 @@ uses, tests/conftest.py). The ratio columns are against the default setting of t
 """
 
 import json
-import os
-import subprocess
 import sys
 import time
 
@@ -62,14 +60,10 @@ def one() -> dict:
 
 
 def main():
-    from _common import machine_info, write_json
+    from _common import machine_info, run_per_setting, write_json
 
-    rows = {}
-    for name, flags in SETTINGS.items():
-        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
-        res = subprocess.run([sys.executable, __file__, "--one"], env=env, capture_output=True, text=True,
-                             check=True, cwd=os.path.dirname(os.path.abspath(__file__)))
-        rows[name] = {"flags": flags, **{int(k): v for k, v in json.loads(res.stdout.splitlines()[-1]).items()}}
+    rows = {name: {"flags": SETTINGS[name], **{int(k): v for k, v in r.items()}}
+            for name, r in run_per_setting(__file__, SETTINGS).items()}
     base = rows["default"]
     print(f"{'setting':32s} {'N':>6s} {'trace+lower':>11s} {'XLA compile':>11s} {'run':>9s} {'exec/s':>9s} "
           f"{'compile x':>9s} {'speed x':>7s} {'max error':>9s}")

@@ -19,8 +19,6 @@ reduced over the two components (19.7 -> 11.9 ms with the flag).
 """
 
 import json
-import os
-import subprocess
 import sys
 import time
 
@@ -30,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import problems as P
 from _baselines import ball_bare_loop
-from _common import machine_info, write_json
+from _common import machine_info, run_per_setting, write_json
 
 import hybridjax as hj
 
@@ -83,12 +81,7 @@ def one() -> list[dict]:
 
 
 def main():
-    settings = {}
-    for name, flags in SETTINGS.items():
-        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
-        res = subprocess.run([sys.executable, __file__, "--one"], env=env, capture_output=True, text=True,
-                             check=True, cwd=os.path.dirname(os.path.abspath(__file__)))
-        settings[name] = dict(flags=flags, rows=json.loads(res.stdout.splitlines()[-1]))
+    settings = {name: dict(flags=SETTINGS[name], rows=r) for name, r in run_per_setting(__file__, SETTINGS).items()}
     print(f"{'case':66s} {'setting':20s} {'run ms':>8s} {'max steps':>9s} {'us/step':>8s}")
     for name, s in settings.items():
         for row in s["rows"]:
