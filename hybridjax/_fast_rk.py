@@ -51,12 +51,13 @@ def weighted_sum(weights, ks, like):
 
 
 def fold(op, x):
-    """Reduce over the leading axis by a Python loop of elementwise ops (above 64 entries,
-    `jnp.sum` / `all` / `any`). XLA:CPU runs a reduction over a small axis slowly: over the
-    outer axis of a (small, N) array several times slower than the same sum written out, and
-    over the minor axis of a vmapped (lanes, small) array it calls YNNPACK (jaxlib 0.10), which
-    does not fuse with its inputs (~50-70 us per call at 2,500 lanes, 2 components). Written
-    out, the sum is elementwise and fuses. The sum's order is x_0 + x_1 + ..., left to right."""
+    """Reduce over the leading axis by a Python loop of elementwise ops (above 64 entries, the
+    `jnp` reduction: `sum`, `min`, `all`, `any`). XLA:CPU runs a reduction over a small axis
+    slowly: over the outer axis of a (small, N) array several times slower than the same sum
+    written out, and over the minor axis of a vmapped (lanes, small) array it calls YNNPACK
+    (jaxlib 0.10), which does not fuse with its inputs (~50-70 us per call at 2,500 lanes, 2
+    components). Written out, the reduction is elementwise and fuses. The order is
+    x_0 op x_1 op ..., left to right."""
     if x.shape[0] > 64:
         reduce = {jnp.add: jnp.sum, jnp.minimum: jnp.min, jnp.logical_and: jnp.all, jnp.logical_or: jnp.any}
         return reduce[op](x, axis=0)
@@ -73,8 +74,9 @@ def unrolled_sum(x):
 
 def unrolled_rms_norm(x):
     """sqrt(sum_i x_i^2 / n) of a flat array, written out: `optimistix.rms_norm`'s value (a
-    dot product there; under vmap a YNNPACK call, see `fold`), for values without gradients."""
-    x = jnp.ravel(x)
+    dot product there; under vmap a YNNPACK call, see `fold`), without gradients (diffrax
+    stops them through the initial step it is used for; sqrt has none at 0)."""
+    x = lax.stop_gradient(jnp.ravel(x))
     if x.shape[0] == 0:
         return jnp.zeros((), x.dtype)
     return jnp.sqrt(unrolled_sum(jnp.square(x)) / x.shape[0])

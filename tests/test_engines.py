@@ -62,6 +62,35 @@ def test_fast_controller_equals_diffrax_pid_controller():
         np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-14)
 
 
+def test_fast_controller_initial_step_equals_diffrax():
+    # Hairer's first step with the rms norm written out (`unrolled_rms_norm`): the same step
+    # as diffrax's own, up to the order of rounding, over states of 1 to 9 components.
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 5, 9):
+        terms = diffrax.ODETerm(lambda t, y, a: -a * y * jnp.cos(t) + jnp.roll(y, 1))
+        pid = diffrax.PIDController(rtol=1e-8, atol=1e-10)
+        for _ in range(5):
+            y0 = jnp.asarray(rng.normal(size=n) * 10.0 ** rng.uniform(-3, 3))
+            t0, a = rng.uniform(0, 5), rng.uniform(0.1, 10)
+            want = pid.init(terms, t0, t0 + 10, y0, None, a, diffrax.Tsit5().func, 5)[0]
+            got = FastIController(pid).init(terms, t0, t0 + 10, y0, None, a, diffrax.Tsit5().func, 5)[0]
+            np.testing.assert_allclose(got - t0, want - t0, rtol=1e-13)
+
+
+@pytest.mark.parametrize("n", [1, 3, 64, 65, 200])
+def test_written_out_reductions_equal_jnp(n):
+    from hybridjax._fast_rk import fold, unrolled_rms_norm, unrolled_sum
+
+    x = jnp.asarray(np.random.default_rng(n).normal(size=(n, 4)))
+    np.testing.assert_allclose(fold(jnp.add, x), jnp.sum(x, axis=0), rtol=1e-13)
+    np.testing.assert_array_equal(fold(jnp.minimum, x), jnp.min(x, axis=0))
+    np.testing.assert_array_equal(fold(jnp.logical_or, x > 1.5), jnp.any(x > 1.5, axis=0))
+    np.testing.assert_array_equal(fold(jnp.logical_and, x > -1.5), jnp.all(x > -1.5, axis=0))
+    np.testing.assert_allclose(unrolled_sum(x[:, 0]), np.sum(np.asarray(x[:, 0])), rtol=1e-13)
+    np.testing.assert_allclose(unrolled_rms_norm(x), np.sqrt(np.mean(np.asarray(x) ** 2)), rtol=1e-14)
+    assert float(unrolled_sum(jnp.zeros((0,)))) == 0.0 and float(unrolled_rms_norm(jnp.zeros((0,)))) == 0.0
+
+
 def _pair(system, x0, mode0, t1, args, **kw):
     run = lambda engine: hj.simulate(system, x0, mode0, 0.0, t1, args, engine=engine, **kw)  # noqa: E731
     return run("fast"), run("diffrax")
