@@ -159,6 +159,17 @@ def _rows_any(x):
     return _fold(jnp.logical_or, x)
 
 
+def _take_lanes(a, idx):
+    """Lanes `idx` of a lanes-last array (an index past the last lane reads the last lane)."""
+    return jnp.take(a, idx, axis=-1, mode="clip")
+
+
+def _put_lanes(o, idx, num_lanes: int):
+    """A lanes-last array of `num_lanes` lanes holding `o`'s lanes at `idx` and zeros elsewhere
+    (indices >= num_lanes, a block's spare slots, are dropped)."""
+    return jnp.zeros(o.shape[:-1] + (num_lanes,), o.dtype).at[..., idx].set(o, mode="drop")
+
+
 def _materialize(tree, pred):
     """`tree`, computed once into buffers: XLA:CPU gives each consumer of a shared elementwise
     computation its own fusion and recomputes the shared part in each (the guard samples and
@@ -373,11 +384,10 @@ class BatchedLoop:
         if M >= N:
             return self.lane_map(fn, *tree, args=self.lane_args(st)), mask, None
         idx = jnp.nonzero(mask, size=M, fill_value=N)[0]
-        sub = jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
+        sub = jtu.tree_map(lambda a: _take_lanes(a, idx), tree)
         out = self.lane_map(fn, *sub, args=self.lane_args(st, idx))
-        out = jtu.tree_map(
-            lambda o: jnp.zeros(o.shape[:-1] + (N,), o.dtype).at[..., idx].set(o, mode="drop"), out)
-        return out, jnp.zeros((N,), bool).at[idx].set(True, mode="drop"), idx
+        out = jtu.tree_map(lambda o: _put_lanes(o, idx, N), out)
+        return out, _put_lanes(jnp.ones((M,), bool), idx, N), idx
 
     def flows(self, mode, t, y, args):
         """F_mode(t, y) on every lane: (n, N).
@@ -483,9 +493,10 @@ class BatchedLoop:
             def pick(v):
                 return v
         else:
-            def pick(v):  # the block's lanes (lanes last); padding slots write the row not returned
-                return jnp.take(v, lanes, axis=-1, mode="clip")
+            def pick(v):
+                return _take_lanes(v, lanes)
 
+            # The block's spare slots (index N) write the row not returned.
             ids = jnp.where(lanes < self.N, pick(ids), self.num_exec)
 
         def put(a, v, col=row):
@@ -524,9 +535,7 @@ class BatchedLoop:
                 lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
             )(pick(st.recent_times), pick(st.recent_states), pick(st.t1))
             if lanes is not None:  # back to every lane; `jumped` holds only on `lanes`
-                is_zeno, t_inf, x_inf = (
-                    jnp.zeros(v.shape[:-1] + (self.N,), v.dtype).at[..., lanes].set(v, mode="drop")
-                    for v in (is_zeno, t_inf, x_inf))
+                is_zeno, t_inf, x_inf = (_put_lanes(v, lanes, self.N) for v in (is_zeno, t_inf, x_inf))
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))

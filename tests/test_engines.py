@@ -14,7 +14,7 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._fast_rk import FastIController, UnrolledERK
+from hybridjax._fast_rk import FastIController, UnrolledERK, fold, unrolled_rms_norm, unrolled_sum
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL
 
@@ -79,8 +79,6 @@ def test_fast_controller_initial_step_equals_diffrax():
 
 @pytest.mark.parametrize("n", [1, 3, 64, 65, 200])
 def test_written_out_reductions_equal_jnp(n):
-    from hybridjax._fast_rk import fold, unrolled_rms_norm, unrolled_sum
-
     x = jnp.asarray(np.random.default_rng(n).normal(size=(n, 4)))
     np.testing.assert_allclose(fold(jnp.add, x), jnp.sum(x, axis=0), rtol=1e-13)
     np.testing.assert_array_equal(fold(jnp.minimum, x), jnp.min(x, axis=0))
