@@ -42,6 +42,7 @@ from ._events import (
     departure_step_bound,
     dip_candidates,
     first_crossings,
+    first_step,
     locate_minimum,
     locate_root,
     start_decision,
@@ -392,7 +393,8 @@ class Loop:
             t_init, ctrl_state = self.controller.init(
                 self.terms, t, self.t1, y, self.dt0, args_ext, self.solver.func, self.error_order()
             )
-            dt = jnp.minimum(t_init - t, departure_step_bound(jets, outgoing, fire))
+            dt = jnp.minimum(first_step(t_init - t, st.dt, self.dt0),
+                             departure_step_bound(jets, outgoing, fire))
             go = eqx.tree_at(
                 lambda s: (s.at_start, s.g_prev, s.dt, s.controller_state, s.made_jump),
                 st,

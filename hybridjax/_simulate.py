@@ -238,7 +238,8 @@ def simulate(
       atol=1e-8)` in float64, `1e-5` in float32.
     - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
       t1=...)`.
-    - `dt0`: first step size; default chosen per epoch from the tolerances (Hairer's rule),
+    - `dt0`: first step size of every epoch; default: from the tolerances (Hairer's rule) for
+      the first epoch, the step-size controller's last proposal for the later ones; either
       capped so that a departing guard is seen positive before it can return.
     - `max_epochs`: the most transitions recorded; one more ends with `MAX_EPOCHS`.
     - `max_steps`: the most solver steps (accepted and rejected, all epochs together);

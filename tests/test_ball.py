@@ -4,6 +4,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 
@@ -66,6 +67,33 @@ def test_epochs_of_a_microsecond_and_shorter_are_not_skipped():
         assert n == 3 and int(sol.num_events) == n
         np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], rtol=1e-9)
         np.testing.assert_allclose(sol.states_after[:n, 1], ref["post_velocities"], rtol=1e-8)
+
+
+def _long_then_short(short: float):
+    """x' = -1 in both modes; "long" starts at x = 1 (an epoch of 1 s), its reset puts x at
+    `short` in "short" (an epoch of `short` s), whose reset puts x back at 1 in "long"."""
+    flow = lambda t, x, p: -jnp.ones_like(x)  # noqa: E731
+    modes = [hj.Mode("long", flow, dim=1), hj.Mode("short", flow, dim=1)]
+    trs = [hj.Transition("long", "short", guard=lambda t, x, p: x[0], reset=lambda t, x, p: jnp.full_like(x, short)),
+           hj.Transition("short", "long", guard=lambda t, x, p: x[0], reset=lambda t, x, p: jnp.ones_like(x))]
+    return hj.HybridSystem(modes, trs)
+
+
+@pytest.mark.parametrize("short", [1e-6, 1e-9])
+def test_a_short_epoch_after_a_long_one_is_not_skipped(short):
+    # An epoch after the first starts with the step the controller proposed before the reset
+    # (here, with a linear flow and no error, ~10x the last step of a 1 s epoch), not Hairer's
+    # step: the short epoch that follows must still be found, in every engine. Closed form:
+    # events at k + (k - 1) short and k + k short.
+    system = _long_then_short(short)
+    ref = np.array([t for k in (1, 2, 3) for t in (k + (k - 1) * short, k + k * short)])
+    runs = {engine: hj.simulate(system, jnp.array([1.0]), "long", 0.0, 3.5, stepsize_controller=TIGHT,
+                                engine=engine) for engine in ("fast", "diffrax")}
+    runs["batch"] = hj.simulate_batch(system, jnp.array([[1.0]]), "long", 0.0, 3.5, stepsize_controller=TIGHT)[0]
+    for engine, sol in runs.items():
+        assert int(sol.num_events) == 6, engine
+        np.testing.assert_allclose(sol.event_times[:6], ref, rtol=0, atol=1e-12, err_msg=engine)
+        np.testing.assert_allclose(sol.final_state, [1.0 - (3.5 - ref[-1])], atol=1e-12, err_msg=engine)
 
 
 def test_default_tolerances_give_event_times_to_1e8():

@@ -15,7 +15,13 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._batched import PER_COMPONENT_MAX_DIM, ChebyshevDense, chebyshev_weights
+from hybridjax._batched import (
+    PER_COMPONENT_MAX_DIM,
+    ChebyshevDense,
+    chebyshev_weights,
+    first_lanes,
+    running_count,
+)
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
 
@@ -317,3 +323,14 @@ def test_engine_choice_and_errors():
     sol = hj.simulate_batch(BALL, x0, "flight", 0.0, 0.2, BALL_ARGS, solver=diffrax.Kvaerno5(),
                             saveat=jnp.array([0.1, 0.2]), stepsize_controller=TIGHT)
     np.testing.assert_allclose(sol.ys[:, 1, 0], np.asarray(x0[:, 0]) - 0.5 * 9.8 * 0.2**2, rtol=1e-8)
+
+
+@pytest.mark.parametrize("frac", [0.0, 0.05, 0.5, 1.0])
+def test_block_compaction_equals_nonzero(frac):
+    # The event block's lane indices (`first_lanes`: a prefix count and a scatter) against
+    # jnp.nonzero with a fixed size, and the prefix count against cumsum: fewer lanes than the
+    # block (padding with N), more (the first ones kept), none and all.
+    mask = jnp.asarray(np.random.default_rng(int(100 * frac)).random(1000) < frac)
+    np.testing.assert_array_equal(running_count(mask), np.cumsum(np.asarray(mask)))
+    for size in (1, 37, 250, 1000):
+        np.testing.assert_array_equal(first_lanes(mask, size), jnp.nonzero(mask, size=size, fill_value=1000)[0])

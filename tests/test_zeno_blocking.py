@@ -165,15 +165,20 @@ def test_monte_carlo_sharded_over_four_host_devices_matches_one_device():
     x0, args = _mc_inputs()
     one = hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=4.0, chunk_size=40,
                          progress=False, max_epochs=32)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    # The suite's compiler settings (conftest.py) plus four devices.
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     here = os.path.dirname(__file__)
     out = subprocess.run([sys.executable, "-c", _SHARDED, here, os.path.dirname(here)], capture_output=True, text=True,
                          env=env, cwd=here, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     four = json.loads(out.stdout.strip().splitlines()[-1])
     assert four["devices"] == 4
+    # Not bit for bit: each device runs a quarter of the chunk, compiled for that shape, and
+    # some lanes round differently; every epoch after the first starts with the step proposed
+    # before it, so that rounding carries through the bounces (~3e-12 in final velocities).
     for k, v in one.per_execution.items():
-        np.testing.assert_allclose(np.asarray(four[k]), v, rtol=1e-12, atol=1e-12, err_msg=k)
+        np.testing.assert_allclose(np.asarray(four[k]), v, rtol=1e-10, atol=1e-11, err_msg=k)
 
 
 def test_chunked_arrays_and_sampler_paths_agree():
