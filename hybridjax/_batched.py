@@ -573,12 +573,12 @@ class BatchedLoop:
         F = kern.flow(mode, t, y, args)  # with gradients: the next step's first stage
         finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets["L0"], 0.0)))
         k = jnp.argmax(fire).astype(jnp.int32) if kern.num_watch else jnp.array(0, jnp.int32)
-        if after_step and self.dt0 is None:
+        if after_step and self.dt0 is None:  # explicit solvers only here: `first_step`
             first = h_prev
         else:
             t_init, _ = self.controller.init(self.terms, ts, t1, ys, self.dt0, (mode, a_sg),
                                              self.solver.func, self.error_order)
-            first = first_step(t_init - ts, h_prev, self.dt0)
+            first = first_step(t_init - ts, h_prev, self.dt0, carry=True)
         dt = jnp.minimum(first, departure_step_bound(jets, outgoing, fire))
         any_fire = jnp.any(fire)
         if K:

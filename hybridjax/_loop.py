@@ -47,7 +47,7 @@ from ._events import (
     locate_root,
     start_decision,
 )
-from ._fast_rk import unrolled_sum
+from ._fast_rk import UnrolledERK, unrolled_sum
 from ._kernels import Kernels, mask_inputs
 from ._status import Status
 from ._zeno import detect_zeno
@@ -163,6 +163,9 @@ class Loop:
         self.t1 = t1
         self.args = args
         self.solver = solver
+        # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
+        # with the controller's last proposal (`first_step`).
+        self.explicit = isinstance(solver, UnrolledERK | diffrax.AbstractERK)
         self.controller = controller
         self.dt0 = dt0
         self.save_ts = save_ts
@@ -393,7 +396,7 @@ class Loop:
             t_init, ctrl_state = self.controller.init(
                 self.terms, t, self.t1, y, self.dt0, args_ext, self.solver.func, self.error_order()
             )
-            dt = jnp.minimum(first_step(t_init - t, st.dt, self.dt0),
+            dt = jnp.minimum(first_step(t_init - t, st.dt, self.dt0, self.explicit),
                              departure_step_bound(jets, outgoing, fire))
             go = eqx.tree_at(
                 lambda s: (s.at_start, s.g_prev, s.dt, s.controller_state, s.made_jump),

@@ -239,7 +239,8 @@ def simulate(
     - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
       t1=...)`.
     - `dt0`: first step size of every epoch; default: from the tolerances (Hairer's rule) for
-      the first epoch, the step-size controller's last proposal for the later ones; either
+      the first epoch and, with an explicit Runge-Kutta solver, the step-size controller's
+      last proposal for the later ones (implicit solvers: Hairer's rule for every epoch);
       capped so that a departing guard is seen positive before it can return.
     - `max_epochs`: the most transitions recorded; one more ends with `MAX_EPOCHS`.
     - `max_steps`: the most solver steps (accepted and rejected, all epochs together);

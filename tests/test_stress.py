@@ -177,8 +177,13 @@ LAM = 1e6
 RELAY = examples.stiff_relay()
 
 
-def test_stiff_relay_with_kvaerno5_matches_the_closed_form():
-    ctrl = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+@pytest.mark.parametrize("tol", [1e-8, 1e-5])
+def test_stiff_relay_with_kvaerno5_matches_the_closed_form(tol):
+    # Each switch restarts a 1e-6 s lag: an implicit step across it is stable and accurate at
+    # its end, but its dense output (where the switch is located) is not, so every epoch
+    # starts from Hairer's rule, which sees the lag (a step carried over located all
+    # switches after the first wrongly at 1e-5).
+    ctrl = diffrax.PIDController(rtol=tol, atol=tol)
     sol = hj.simulate(RELAY, jnp.zeros(2), "up", 0.0, 20.0, LAM, solver=diffrax.Kvaerno5(),
                       stepsize_controller=ctrl, max_steps=2000)
     ref = examples.stiff_relay_closed_form(0.0, LAM, 20.0)  # switches at (1 + 1/LAM)(1 + 2k)
