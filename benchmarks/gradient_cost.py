@@ -46,6 +46,12 @@ def batched_jacobians(x0, e):
     return jax.jacfwd(lambda c: final(x0 + c[:2], e + c[2]))(jnp.zeros(3))
 
 
+def batched_jvp(x0, e):
+    """Every execution's final state and its derivative along one direction of (h0, v0, e)."""
+    final = make_batch(diffrax.ForwardMode())
+    return jax.jvp(final, (x0, e), (jnp.ones_like(x0), jnp.ones_like(e)))
+
+
 def main():
     rng = np.random.default_rng(0)
     rows = []
@@ -56,25 +62,30 @@ def main():
         rev = jax.jit(jax.vmap(jax.grad(lambda x, e: jnp.sum(make(2.5, 32, diffrax.RecursiveCheckpointAdjoint())(x, e)),
                                         argnums=(0, 1))))
         fwd = jax.jit(jax.vmap(jax.jacfwd(make(2.5, 32, diffrax.ForwardMode()), argnums=(0, 1))))
+        one = make(2.5, 32, diffrax.ForwardMode())
+        jvp = jax.jit(jax.vmap(lambda x, e: jax.jvp(one, (x, e), (jnp.ones_like(x), jnp.ones_like(e)))))
         b_solve = jax.jit(make_batch(diffrax.RecursiveCheckpointAdjoint()))
         b_rev = jax.jit(jax.grad(lambda x, e: jnp.sum(make_batch(diffrax.RecursiveCheckpointAdjoint())(x, e)),
                                  argnums=(0, 1)))
         b_fwd = jax.jit(batched_jacobians)
-        for engine, (f0, f1, f2) in (("vmap(simulate)", (fwd_solve, rev, fwd)),
-                                     ("simulate_batch", (b_solve, b_rev, b_fwd))):
+        b_jvp = jax.jit(batched_jvp)
+        for engine, (f0, f1, f2, f3) in (("vmap(simulate)", (fwd_solve, rev, fwd, jvp)),
+                                         ("simulate_batch", (b_solve, b_rev, b_fwd, b_jvp))):
             c0, t0, _ = timed(f0, x0, e)
             c1, t1, _ = timed(f1, x0, e)
             c2, t2, _ = timed(f2, x0, e)
-            rows.append(dict(engine=engine, batch=n, forward_s=t0, reverse_s=t1, jacfwd_s=t2, reverse_ratio=t1 / t0,
-                             jacfwd_ratio=t2 / t0, compile_forward_s=c0, compile_reverse_s=c1,
-                             compile_jacfwd_s=c2))
+            c3, t3, _ = timed(f3, x0, e)
+            rows.append(dict(engine=engine, batch=n, forward_s=t0, reverse_s=t1, jacfwd_s=t2, jvp_s=t3,
+                             reverse_ratio=t1 / t0, jacfwd_ratio=t2 / t0, jvp_ratio=t3 / t0,
+                             compile_forward_s=c0, compile_reverse_s=c1, compile_jacfwd_s=c2, compile_jvp_s=c3))
     print("gradient cost relative to the forward solve (bouncing ball, T = 2.5, ~5 events)")
-    print(f"{'engine':>15} {'batch':>6} {'forward s':>10} {'grad (rev) s':>13} {'ratio':>6} {'jacfwd s':>9} {'ratio':>6}"
-          f" {'compile f/r/fwd s':>18}")
+    print(f"{'engine':>15} {'batch':>6} {'forward s':>10} {'grad (rev) s':>13} {'ratio':>6} {'jvp s':>8} {'ratio':>6}"
+          f" {'jacfwd s':>9} {'ratio':>6} {'compile f/r/jvp/fwd s':>22}")
     for r in rows:
         print(f"{r['engine']:>15} {r['batch']:>6} {r['forward_s']:>10.4f} {r['reverse_s']:>13.4f} {r['reverse_ratio']:>6.1f}"
-              f" {r['jacfwd_s']:>9.4f} {r['jacfwd_ratio']:>6.1f}   {r['compile_forward_s']:.1f}/"
-              f"{r['compile_reverse_s']:.1f}/{r['compile_jacfwd_s']:.1f}")
+              f" {r['jvp_s']:>8.4f} {r['jvp_ratio']:>6.1f} {r['jacfwd_s']:>9.4f} {r['jacfwd_ratio']:>6.1f}"
+              f"   {r['compile_forward_s']:.1f}/{r['compile_reverse_s']:.1f}/{r['compile_jvp_s']:.1f}/"
+              f"{r['compile_jacfwd_s']:.1f}")
 
     mem = []
     x = jnp.array([1.0, 0.0])
