@@ -41,6 +41,7 @@ import numpy as np
 from jax import lax
 
 from ._events import (
+    carries_step,
     departure_step_bound,
     first_step,
     locate_minimum,
@@ -346,6 +347,7 @@ class BatchedLoop:
         self.kern = Kernels(system, lane_args, dtype)
         self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
         self.solver, self.controller, self.dt0 = solver, controller, dt0
+        self.carry_step = carries_step(dt0, explicit=True)  # explicit solvers only (`first_step`)
         self.max_epochs, self.max_steps = max_epochs, max_steps
         self.interior_points, self.event_tol = interior_points, event_tol
         self.max_zero_epochs, self.zeno = max_zero_epochs, zeno
@@ -573,12 +575,12 @@ class BatchedLoop:
         F = kern.flow(mode, t, y, args)  # with gradients: the next step's first stage
         finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets["L0"], 0.0)))
         k = jnp.argmax(fire).astype(jnp.int32) if kern.num_watch else jnp.array(0, jnp.int32)
-        if after_step and self.dt0 is None:  # explicit solvers only here: `first_step`
+        if after_step and self.carry_step:
             first = h_prev
         else:
             t_init, _ = self.controller.init(self.terms, ts, t1, ys, self.dt0, (mode, a_sg),
                                              self.solver.func, self.error_order)
-            first = first_step(t_init - ts, h_prev, self.dt0, carry=True)
+            first = first_step(t_init - ts, h_prev, self.carry_step)
         dt = jnp.minimum(first, departure_step_bound(jets, outgoing, fire))
         any_fire = jnp.any(fire)
         if K:

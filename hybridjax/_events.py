@@ -46,31 +46,35 @@ def start_decision(jets, outgoing, eps):
     return fire, g_start
 
 
-def first_step(initial, proposed, dt0, carry: bool):
+def carries_step(dt0, explicit: bool) -> bool:
+    """Whether epochs after the first start with the controller's last proposal (`first_step`):
+    with an explicit solver and no `dt0` given."""
+    return dt0 is None and explicit
+
+
+def first_step(initial, proposed, carry: bool):
     """The first step of an epoch, before `departure_step_bound` caps it.
 
     The first epoch starts with `initial`, the controller's initial step (Hairer's rule, or
-    `dt0`). With an explicit solver (`carry`), a later epoch (`proposed` > 0: the step size
-    the controller proposed after the step that ended the previous epoch) starts with that
-    proposal, as DifferentialEquations.jl keeps its step size across a callback: Hairer's
-    rule does not know the scale the solve has already found and at tight tolerances starts
-    far below it (the bouncing ball at 1e-9: ~4 ms against ~0.1 s; 19 steps per execution
-    against 12 on benchmark problem A). If the reset has changed the scale, the controller
-    rejects and shrinks the step as it would anywhere: an explicit step across a transient
-    faster than itself is unstable, its error estimate large. An implicit step across one is
-    stable and can be accepted while its dense output (Hermite, where events are located)
-    is far off: the stiff relay with Kvaerno3/5, a 1e-6 s lag restarted at each switch,
-    located every switch after the first wrongly. Implicit solvers therefore start every
-    epoch with Hairer's rule, which sees the transient. A `dt0` given by the user starts
-    every epoch.
+    `dt0`). With an explicit solver and no `dt0` (`carry`, from `carries_step`), a later
+    epoch (`proposed` > 0: the step size the controller proposed after the step that ended
+    the previous epoch) starts with that proposal, as DifferentialEquations.jl keeps its step
+    size across a callback: Hairer's rule does not know the scale the solve has already
+    found and at tight tolerances starts far below it (the bouncing ball at 1e-9: ~4 ms
+    against ~0.1 s; 19 steps per execution against 12 on benchmark problem A). If the reset
+    has changed the scale, the controller rejects and shrinks the step as it would anywhere:
+    an explicit step across a transient faster than itself is unstable, its error estimate
+    large. An implicit step across one is stable and can be accepted while its dense output
+    (Hermite, where events are located) is far off: the stiff relay with Kvaerno3/5, a
+    1e-6 s lag restarted at each switch, located every switch after the first wrongly.
+    Implicit solvers therefore start every epoch with Hairer's rule, which sees the
+    transient. A `dt0` given by the user starts every epoch.
 
     The epochs' first steps are then taken at the tolerance rather than far inside it: at a
     given tolerance the error can be larger (the thermostat at 1e-8: 1.8e-6 against 1.9e-7),
     at a given error the run is as fast or faster (`benchmarks/work_precision.py`).
     """
-    if dt0 is not None or not carry:
-        return initial
-    return jnp.where(proposed > 0, proposed, initial)
+    return jnp.where(proposed > 0, proposed, initial) if carry else initial
 
 
 def departure_step_bound(jets, outgoing, fire) -> jax.Array:

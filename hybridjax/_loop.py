@@ -39,6 +39,7 @@ import numpy as np
 from jax import lax
 
 from ._events import (
+    carries_step,
     departure_step_bound,
     dip_candidates,
     first_crossings,
@@ -163,11 +164,11 @@ class Loop:
         self.t1 = t1
         self.args = args
         self.solver = solver
-        # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
-        # with the controller's last proposal (`first_step`).
-        self.explicit = isinstance(solver, UnrolledERK | diffrax.AbstractERK)
         self.controller = controller
         self.dt0 = dt0
+        # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
+        # with the controller's last proposal (`first_step`).
+        self.carry_step = carries_step(dt0, isinstance(solver, UnrolledERK | diffrax.AbstractERK))
         self.save_ts = save_ts
         self.max_epochs = max_epochs
         self.max_steps = max_steps
@@ -396,7 +397,7 @@ class Loop:
             t_init, ctrl_state = self.controller.init(
                 self.terms, t, self.t1, y, self.dt0, args_ext, self.solver.func, self.error_order()
             )
-            dt = jnp.minimum(first_step(t_init - t, st.dt, self.dt0, self.explicit),
+            dt = jnp.minimum(first_step(t_init - t, st.dt, self.carry_step),
                              departure_step_bound(jets, outgoing, fire))
             go = eqx.tree_at(
                 lambda s: (s.at_start, s.g_prev, s.dt, s.controller_state, s.made_jump),
