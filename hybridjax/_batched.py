@@ -169,12 +169,14 @@ def running_count(mask):
     return lax.associative_scan(jnp.add, mask.astype(jnp.int32))
 
 
-def first_lanes(mask, size: int):
+def first_lanes(mask, size: int, count=None):
     """Indices of the first `size` lanes where `mask` holds, in order, padded with N:
     `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there,
-    ~200-300 us on 10,000 lanes) as one prefix count and one scatter (~80-140 us)."""
+    ~200-300 us on 10,000 lanes) as one prefix count and one scatter (~80-140 us).
+    `count`: `running_count(mask)`, where the caller has it."""
     N = mask.shape[0]
-    slot = jnp.where(mask, running_count(mask) - 1, size)  # size: dropped
+    count = running_count(mask) if count is None else count
+    slot = jnp.where(mask, count - 1, size)  # size: dropped
     return jnp.full((size,), N, jnp.int32).at[slot].set(jnp.arange(N, dtype=jnp.int32), mode="drop")
 
 
@@ -183,10 +185,28 @@ def _take_lanes(a, idx):
     return jnp.take(a, idx, axis=-1, mode="clip")
 
 
-def _put_lanes(o, idx, num_lanes: int):
-    """A lanes-last array of `num_lanes` lanes holding `o`'s lanes at `idx` and zeros elsewhere
-    (indices >= num_lanes, a block's spare slots, are dropped)."""
-    return jnp.zeros(o.shape[:-1] + (num_lanes,), o.dtype).at[..., idx].set(o, mode="drop")
+# The per-lane fields of `Lanes` (all but the queue's head, `next_exec`).
+_LANE_FIELDS = tuple(f for f in Lanes.__dataclass_fields__ if f != "next_exec")
+
+
+def _gather_lanes(st: Lanes, idx) -> Lanes:
+    """The lanes `idx` of `st` as a `Lanes` of their own (a block); `idx` None: `st` itself.
+    (Fields the block's update does not read are gathers without users: XLA removes them.)"""
+    if idx is None:
+        return st
+    return eqx.tree_at(lambda s: [getattr(s, f) for f in _LANE_FIELDS], st,
+                       [_take_lanes(getattr(st, f), idx) for f in _LANE_FIELDS])
+
+
+def _scatter_lanes(st: Lanes, gathered: Lanes, block: Lanes, idx) -> Lanes:
+    """`st` with lanes `idx` replaced by `block`, the update of `gathered` (`_gather_lanes`'
+    output): one scatter per field the update changed (by identity; indices >= N, a block's
+    spare slots, are dropped)."""
+    if idx is None:
+        return block
+    changed = [f for f in _LANE_FIELDS if getattr(block, f) is not getattr(gathered, f)]
+    return eqx.tree_at(lambda s: [getattr(s, f) for f in changed], st,
+                       [getattr(st, f).at[..., idx].set(getattr(block, f), mode="drop") for f in changed])
 
 
 def _materialize(tree, pred):
@@ -391,23 +411,29 @@ class BatchedLoop:
         lanes in `tree` (`lane_args`)."""
         return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
-    def on_lanes(self, st: Lanes, mask, fn, *tree):
-        """`fn` on (some of) the lanes where `mask` holds, lanes last; returns `(out, done, idx)`.
+    def on_block(self, mask, fn, operand):
+        """`fn(idx, waiting, operand)` for the lanes in `mask` whose rare work is done now.
 
-        The first `block` lanes in `mask` are gathered into a block, computed and scattered
-        back (`done` marks them; other lanes' outputs are zeros; `idx` (block,) are their
-        indices, N where the block has room to spare). Lanes beyond the block wait for a
-        later iteration: each function is compiled once, for one block size. Without a block
-        (every lane computed), `idx` is None.
+        `idx` (block,): the first `block` lanes where `mask` holds, in order, padded with N
+        (spare slots); `waiting`: the lanes in `mask` beyond the block, which wait for a later
+        iteration (each function is compiled once, for one block size). With a block as large
+        as the batch, `idx` is None (every lane is computed where it is) and none waits.
+        `fn` gathers the block's lanes (`_gather_lanes`), updates them on the block alone and
+        scatters them back once per changed field (`_scatter_lanes`), rather than writing each
+        output into N-wide zeros and merging it into the state with N-wide selects.
         """
-        N, M = self.N, self.block
-        if M >= N:
-            return self.lane_map(fn, *tree, args=self.lane_args(st)), mask, None
-        idx = first_lanes(mask, M)
-        sub = jtu.tree_map(lambda a: _take_lanes(a, idx), tree)
-        out = self.lane_map(fn, *sub, args=self.lane_args(st, idx))
-        out = jtu.tree_map(lambda o: _put_lanes(o, idx, N), out)
-        return out, _put_lanes(jnp.ones((M,), bool), idx, N), idx
+        if self.block >= self.N:
+            return fn(None, jnp.zeros_like(mask), operand)
+        count = running_count(mask)
+        return fn(first_lanes(mask, self.block, count), mask & (count > self.block), operand)
+
+    def take(self, tree, idx):
+        """Lanes `idx` of every array in `tree` (lanes last); `idx` None: `tree` itself."""
+        return tree if idx is None else jtu.tree_map(lambda a: _take_lanes(a, idx), tree)
+
+    def in_block(self, idx, mask):
+        """Which of the block's slots hold a lane: `mask` itself without a block."""
+        return mask if idx is None else idx < self.N
 
     def flows(self, mode, t, y, args):
         """F_mode(t, y) on every lane: (n, N).
@@ -495,11 +521,11 @@ class BatchedLoop:
 
     # ------------------------------------------------------------------ jump
     def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool, lanes=None):
+             grazing, zero_length: bool):
         """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
         the caller); then stop on too many epochs, non-finite values, chattering or Zeno.
-        `lanes`: the indices (`on_lanes`' `idx`) of the only lanes `mask` can hold; the record
-        is written from those alone (a scatter of a block, not of every lane)."""
+        `st` is the block of lanes (`on_block`) the jumps can happen on: the record is written
+        from those alone."""
         E = self.max_epochs
         K = self.kern.num_transitions
         full = st.num_events >= E
@@ -508,22 +534,14 @@ class BatchedLoop:
         jumped = kept & finite
         target = self.kern.targets[jnp.clip(k, 0, K - 1)]
         row = jnp.where(kept, st.num_events, 0)
-        ids = jnp.where(kept, st.exec_id, self.num_exec)  # num_exec: the row not returned
-        if lanes is None:
-            def pick(v):
-                return v
-        else:
-            def pick(v):
-                return _take_lanes(v, lanes)
-
-            # The block's spare slots (index N) write the row not returned.
-            ids = jnp.where(lanes < self.N, pick(ids), self.num_exec)
+        # num_exec: the row not returned (lanes without a kept event, a block's spare slots).
+        ids = jnp.where(kept, st.exec_id, self.num_exec)
 
         def put(a, v, col=row):
-            return a.at[ids, pick(col)].set(pick(v).astype(a.dtype))
+            return a.at[ids, col].set(v.astype(a.dtype))
 
         def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
-            return a.at[ids, pick(row)].set(pick(v).T.astype(a.dtype))
+            return a.at[ids, row].set(v.T.astype(a.dtype))
 
         rec = eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
@@ -553,9 +571,7 @@ class BatchedLoop:
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
                 lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
-            )(pick(st.recent_times), pick(st.recent_states), pick(st.t1))
-            if lanes is not None:  # back to every lane; `jumped` holds only on `lanes`
-                is_zeno, t_inf, x_inf = (_put_lanes(v, lanes, self.N) for v in (is_zeno, t_inf, x_inf))
+            )(st.recent_times, st.recent_states, st.t1)
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
@@ -595,10 +611,14 @@ class BatchedLoop:
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
 
-        def run(carry):
-            st, rec = carry
-            out, handled, idx = self.on_lanes(st, active, self._start_lane, st.t, st.y, st.mode, st.h, st.t1)
-            active_now = active & handled  # the others stay at the start of their epoch
+        def run(idx, _, carry):
+            # Active lanes beyond the block stay at the start of their epoch.
+            st_all, rec = carry
+            st = b0 = _gather_lanes(st_all, idx)
+            active_now = self.in_block(idx, active)
+            out = self.lane_map(self._start_lane, st.t, st.y, st.mode, st.h, st.t1,
+                                args=self.lane_args(st_all, idx))
+            out = _materialize(out, jnp.any(active))
             fire = active_now & out["fire"]
             K = self.kern.num_transitions
             go = active_now & ~out["fire"]
@@ -610,11 +630,11 @@ class BatchedLoop:
             st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
             if K:
                 st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
-                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True, lanes=idx)
+                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True)
             st = _stop(st, active_now & ~out["finite"], Status.NONFINITE)
-            return st, rec
+            return _scatter_lanes(st_all, b0, st, idx), rec
 
-        return lax.cond(jnp.any(active), run, lambda c: c, (st, rec))
+        return lax.cond(jnp.any(active), lambda c: self.on_block(active, run, c), lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ one step
     def _event_lane(self, t, t_next, y, y1, ks, mode, has, j, suspect, i_d, x0_d, s_ext, h_new, t1,
@@ -746,26 +766,33 @@ class BatchedLoop:
             new = eqx.tree_at(lambda s: s.g_prev, new, jnp.where(acc, G_e[-1], new.g_prev))
         reached = acc & (t_next >= st.t1)
         if W:
-            def events(carry):
+            def events(idx, waiting, carry):
                 # Lanes with an event in this step: undo the acceptance above, then locate,
-                # jump, and start the next epoch (all only when some lane needs it).
-                new, rec = carry
-                out, handled, idx = self.on_lanes(st, need, self._event_lane, t, t_next, y, y1, jnp.stack(ks),
-                                                  st.mode, has, j, suspect, i_d, x0_d, jnp.stack(times),
-                                                  dt_new, st.t1)
-                ev = need & handled & out["event"]
-                # Lanes beyond the block take this step again next iteration (same t, h, y:
-                # the same step), as if it had not been tried.
-                waiting = need & ~handled
-                back = ev | waiting
-                new = eqx.tree_at(
-                    lambda s: (s.t, s.y, s.f0, s.g_prev, s.zero_run, s.h, s.num_steps, s.num_rejected), new,
-                    (jnp.where(back, st.t, new.t), jnp.where(back, st.y, new.y),
-                     jnp.where(back, st.f0, new.f0), jnp.where(back, st.g_prev, new.g_prev),
-                     jnp.where(back, st.zero_run, new.zero_run), jnp.where(waiting, st.h, new.h),
-                     jnp.where(waiting, st.num_steps, new.num_steps),
-                     jnp.where(waiting, st.num_rejected, new.num_rejected)))
-                new = _stop(new, reached & ~back, Status.T1_REACHED)
+                # jump, and start the next epoch (all only when some lane needs it), on the
+                # block of those lanes.
+                new_all, rec = carry
+                out = self.lane_map(self._event_lane,
+                                    *self.take((t, t_next, y, y1, jnp.stack(ks), st.mode, has, j, suspect,
+                                                i_d, x0_d, jnp.stack(times), dt_new, st.t1), idx),
+                                    args=self.lane_args(st, idx))
+                # Each output feeds several fields' updates; computed once (`_materialize`).
+                out = _materialize(out, jnp.any(need))
+                back = ("t", "y", "f0", "g_prev", "zero_run")
+                if idx is not None:
+                    # Lanes beyond the block take this step again next iteration (same t, h, y:
+                    # the same step), as if it had not been tried.
+                    redo = (*back, "h", "num_steps", "num_rejected")
+                    new_all = eqx.tree_at(
+                        lambda s: [getattr(s, f) for f in redo], new_all,
+                        [jnp.where(waiting, getattr(st, f), getattr(new_all, f)) for f in redo])
+                new_all = _stop(new_all, reached & ~need, Status.T1_REACHED)
+                new = b0 = _gather_lanes(new_all, idx)
+                before = _gather_lanes(st, idx)
+                in_block = self.in_block(idx, need)
+                ev = in_block & out["event"]
+                new = eqx.tree_at(lambda s: [getattr(s, f) for f in back], new,
+                                  [jnp.where(ev, getattr(before, f), getattr(new, f)) for f in back])
+                new = _stop(new, in_block & self.take(reached, idx) & ~ev, Status.T1_REACHED)
                 blocked = ev & (out["k"] >= K)
                 new = eqx.tree_at(lambda s: (s.t, s.y), new,
                                   (jnp.where(blocked, out["t_ev"], new.t),
@@ -775,7 +802,7 @@ class BatchedLoop:
                     jumping = ev & (out["k"] < K)
                     new, rec = self.jump(new, rec, jumping, out["k"], out["t_ev"], out["y_before"],
                                          out["y_after"], out["simultaneous"], out["grazing"],
-                                         zero_length=False, lanes=idx)
+                                         zero_length=False)
                     # The new epoch's start test was done with the event: where no guard fires
                     # at once, start it here (the start stage handles the rest next iteration).
                     go = (jumping & new.at_start & ~new.done & ~out["next_fire"] & out["next_finite"]
@@ -784,13 +811,21 @@ class BatchedLoop:
                         lambda s: (s.at_start, s.g_prev, s.h, s.f0), new,
                         (new.at_start & ~go, jnp.where(go, out["next_g"], new.g_prev),
                          jnp.where(go, out["next_dt"], new.h), jnp.where(go, out["next_F"], new.f0)))
-                return new, rec, (acc & ~back) | ev, jnp.where(ev, out["t_star"], sg(t_next))
+                new_all = _scatter_lanes(new_all, b0, new, idx)
+                # A step is taken where accepted, unless its lane waits (an event lane's step
+                # ends at its event, t_star; elsewhere t_star is t_next).
+                t_end = sg(t_next)
+                if self.save_ts.shape[0]:
+                    t_star = jnp.where(ev, out["t_star"], self.take(t_end, idx))
+                    t_end = t_star if idx is None else t_end.at[idx].set(t_star, mode="drop")
+                return new_all, rec, acc & ~waiting, t_end
 
             def no_events(carry):
                 new, rec = carry
                 return _stop(new, reached, Status.T1_REACHED), rec, acc, sg(t_next)
 
-            new, rec, took, t_end = lax.cond(jnp.any(need), events, no_events, (new, rec))
+            new, rec, took, t_end = lax.cond(jnp.any(need), lambda c: self.on_block(need, events, c),
+                                             no_events, (new, rec))
         else:
             new = _stop(new, reached, Status.T1_REACHED)
             took, t_end = acc, sg(t_next)
