@@ -13,8 +13,9 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
 - the work only some lanes need (the epoch-start test with its Lie derivatives and the
   epoch's first step; root and minimum location, the implicit-function event point and the reset)
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
-  block of lanes/4 and scattered back (lanes beyond the block wait an iteration: a step whose
-  event is not located yet is taken again, identically, in the next);
+  block of lanes/4, updated there and scattered back once per changed field (lanes beyond the
+  block wait an iteration: a step whose event is not located yet is taken again, identically,
+  in the next);
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
   in every checkpoint (the ball's reverse pass at N = 1,000: 100-144 ms -> 23-31 ms);
