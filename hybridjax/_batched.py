@@ -50,7 +50,7 @@ from ._events import (
     start_decision,
 )
 from ._fast_rk import fold as _fold
-from ._fast_rk import weighted_sum
+from ._fast_rk import inverse_root, weighted_sum
 from ._kernels import Kernels, mask_inputs
 from ._loop import event_point
 from ._status import Status
@@ -359,8 +359,8 @@ class BatchedLoop:
 
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
-                 zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int, block: int | None = None,
-                 save_ts=None):
+                 zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int,
+                 block: int | tuple | None = None, save_ts=None):
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
@@ -380,7 +380,9 @@ class BatchedLoop:
         self.save_order = jnp.argsort(self.save_ts)
         self.save_sorted = self.save_ts[self.save_order]
         # Small batches compute the rare work on every lane; large ones on a block of lanes/4.
+        small, block = block if isinstance(block, tuple) else (None, block)
         self.block = (lanes if lanes <= 256 else max(256, lanes // 4)) if block is None else block
+        self.small_block = small if small is not None and small < min(self.block, lanes) else None
         self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
         self.error_order = solver.error_order(self.terms)
         self.rtol, self.atol = controller.rtol, controller.atol
@@ -417,16 +419,27 @@ class BatchedLoop:
 
         `idx` (block,): the first `block` lanes where `mask` holds, in order, padded with N
         (spare slots); `waiting`: the lanes in `mask` beyond the block, which wait for a later
-        iteration (each function is compiled once, for one block size). With a block as large
-        as the batch, `idx` is None (every lane is computed where it is) and none waits.
+        iteration (each function is compiled once, for one block size; with `small_block`, a
+        second time, for that size, taken where all of `mask` fits in it). With a block as
+        large as the batch, `idx` is None (every lane is computed where it is) and none waits.
         `fn` gathers the block's lanes (`_gather_lanes`), updates them on the block alone and
         scatters them back once per changed field (`_scatter_lanes`), rather than writing each
         output into N-wide zeros and merging it into the state with N-wide selects.
         """
-        if self.block >= self.N:
-            return fn(None, jnp.zeros_like(mask), operand)
+        def large(op, count=None):
+            if self.block >= self.N:
+                return fn(None, jnp.zeros_like(mask), op)
+            count = running_count(mask) if count is None else count
+            return fn(first_lanes(mask, self.block, count), mask & (count > self.block), op)
+
+        small = self.small_block
+        if small is None:
+            return large(operand)
+        # Two compiled sizes: the small block where all of `mask` fits in it.
         count = running_count(mask)
-        return fn(first_lanes(mask, self.block, count), mask & (count > self.block), operand)
+        return lax.cond(count[-1] <= small,
+                        lambda op: fn(first_lanes(mask, small, count), jnp.zeros_like(mask), op),
+                        lambda op: large(op, count), operand)
 
     def take(self, tree, idx):
         """Lanes `idx` of every array in `tree` (lanes last); `idx` None: `tree` itself."""
@@ -719,7 +732,7 @@ class BatchedLoop:
         scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
         e = sg(jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0]))
         keep = (e < 1) & finite_y1
-        factor = sg(jnp.clip(c.safety * (1 / e) ** (1 / order), jnp.where(keep, 1.0, c.factormin),
+        factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
                              jnp.where(keep, c.factormax, c.safety)))
         dt_new = sg(jnp.where(finite_y1, hh * factor.astype(self.dtype), 0.25 * hh))
 

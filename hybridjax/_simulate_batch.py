@@ -37,6 +37,19 @@ def _lanes(x) -> int:
     return int(np.shape(x)[0])
 
 
+def _check_block(block) -> None:
+    def size(b):
+        return isinstance(b, (int, np.integer)) and not isinstance(b, bool) and b >= 1
+
+    if block is None or size(block):
+        return
+    if isinstance(block, tuple) and len(block) == 2 and size(block[0]):
+        if block[1] is None or (size(block[1]) and block[0] < block[1]):
+            return
+    raise ValueError("block must be a positive integer, None (the default), or a tuple (small, large) "
+                     f"of block sizes with small < large (large None: the default); got {block!r}.")
+
+
 def simulate_batch(
     system: HybridSystem,
     x0: Float[ArrayLike, "batch dim"],
@@ -61,7 +74,7 @@ def simulate_batch(
     zeno_max_ratio: float = 0.99,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
     engine: str = "auto",
-    block: int | None = None,
+    block: int | tuple[int, int | None] | None = None,
     lanes: int | None = None,
 ) -> Solution:
     r"""Simulate N executions of `system`, one per row of `x0`; a batched `Solution`.
@@ -95,6 +108,14 @@ def simulate_batch(
       runs (one process each, 2-core CPU, Tsit5, 1e-9): Van der Pol relay at N = 10,000 with
       N/32 1.9x faster than N/4 (2.2 against 4.1 s); bouncing ball at N = 10,000 with
       `block=N` 1.2x faster (84 against 98 ms); thermostat at N = 2,000 fastest at N/4.
+      `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
+      and takes the small block in iterations where every execution that needs it fits in it:
+      long runs with few events per step get the small block's speed, event-dense iterations
+      the large one's, for a second compilation of the rare work (+5 to +10 s on a 2-core
+      CPU). In one process (`benchmarks/block_size.py`): Van der Pol relay at N = 10,000,
+      `block=(312, None)` 0.60x the run time of the default (2.5 against 4.1 s; N/32 alone
+      0.56x); bouncing ball at N = 10,000 0.95x (N/32 alone 2.0x); thermostat at
+      N = 2,000, `(62, None)` 1.04x (62 alone 4.5x).
     - `lanes`: how many executions advance together (default: all N up to 20,000, else
       10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
       that a Monte Carlo batch keeps every lane busy while its executions take different
@@ -121,6 +142,7 @@ def simulate_batch(
         raise ValueError(f"engine must be 'auto', 'batched' or 'vmap', got {engine!r}.")
     if lanes is not None and (not isinstance(lanes, (int, np.integer)) or lanes < 1):
         raise ValueError(f"lanes must be a positive integer (or None: the default), got {lanes!r}.")
+    _check_block(block)
     x0_arr = jnp.asarray(x0)
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")

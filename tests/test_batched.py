@@ -7,6 +7,8 @@ Batches are small and `block=2`, so that an iteration's rare work runs both on a
 (at most two executions need it) and on the whole batch (more do).
 """
 
+import functools
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -173,25 +175,49 @@ def test_batched_args_and_per_execution_times():
     assert list(got.status_name) == ["T1_REACHED", "ZENO", "T1_REACHED"]
 
 
-def test_lanes_fewer_than_executions_take_the_next_execution_when_one_ends():
-    # 7 executions on 2 lanes: each lane runs several in turn, with its own args, start and end
-    # times, save times and final status (execution 2 is Zeno); held to vmap(simulate)
-    x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5], [0.5, 0.9], [1.4, 0.1], [0.9, -0.8], [0.6, 0.0]])
-    args = {"g": jnp.array([9.8, 9.8, 9.8, 3.7, 9.8, 1.6, 9.8]), "e": jnp.array([0.8, 0.7, 0.5, 0.9, 0.8, 0.6, 0.8])}
-    t0 = jnp.array([0.0, 0.2, -0.1, 0.0, 0.5, 0.0, 0.0])
-    t1 = jnp.array([2.0, 0.4, 3.0, 2.5, 1.0, 2.0, 1.5])
-    kw = dict(args_batched=True, stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 2.0, 9))
-    got = hj.simulate_batch(BALL, x0, "flight", t0, t1, args, lanes=2, block=1, engine="batched", **kw)
-    want = hj.simulate_batch(BALL, x0, "flight", t0, t1, args, engine="vmap", **kw)
+# Seven balls with their own args, start and end times (execution 2 is Zeno), and save times.
+SEVEN = (jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5], [0.5, 0.9], [1.4, 0.1], [0.9, -0.8], [0.6, 0.0]]),
+         "flight", jnp.array([0.0, 0.2, -0.1, 0.0, 0.5, 0.0, 0.0]), jnp.array([2.0, 0.4, 3.0, 2.5, 1.0, 2.0, 1.5]),
+         {"g": jnp.array([9.8, 9.8, 9.8, 3.7, 9.8, 1.6, 9.8]), "e": jnp.array([0.8, 0.7, 0.5, 0.9, 0.8, 0.6, 0.8])})
+SEVEN_KW = dict(args_batched=True, stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 2.0, 9))
+
+
+@functools.lru_cache(maxsize=1)
+def _seven_by_vmap():
+    want = hj.simulate_batch(BALL, *SEVEN, engine="vmap", **SEVEN_KW)
     assert "ZENO" in list(want.status_name) and int(np.min(want.num_events)) < int(np.max(want.num_events))
+    return want
+
+
+def _assert_same_as_seven_by_vmap(got):
+    want = _seven_by_vmap()
     _assert_same_executions(got, want)
     np.testing.assert_allclose(got.ys, want.ys, rtol=1e-8, atol=1e-9)
     np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+
+
+def test_lanes_fewer_than_executions_take_the_next_execution_when_one_ends():
+    # 7 executions on 2 lanes: each lane runs several in turn, with its own args, start and end
+    # times, save times and final status; held to vmap(simulate)
+    x0 = SEVEN[0]
+    _assert_same_as_seven_by_vmap(hj.simulate_batch(BALL, *SEVEN, lanes=2, block=1, engine="batched", **SEVEN_KW))
     # and through the lane refills, the gradient (reverse mode) of the final heights
     grad = lambda **o: jax.jit(jax.grad(lambda x: jnp.sum(hj.simulate_batch(  # noqa: E731
         BALL, x, "flight", 0.0, 1.5, BALL_ARGS, stepsize_controller=TIGHT, **o).final_state[:, 0])))
     np.testing.assert_allclose(grad(lanes=1, engine="batched")(x0[:3]), grad(engine="vmap")(x0[:3]),
                                rtol=1e-7, atol=1e-9)
+
+
+def test_two_block_sizes_run_the_same_executions():
+    # block=(1, 3): the rare work on a block of one where at most one execution needs it, else
+    # on a block of three with the others waiting; held to vmap(simulate)
+    _assert_same_as_seven_by_vmap(hj.simulate_batch(BALL, *SEVEN, block=(1, 3), engine="batched", **SEVEN_KW))
+
+
+@pytest.mark.parametrize("block", [0, -2, 2.5, True, (3, 2), (2, 2), (2,), (0, None), [1, 3]])
+def test_bad_block_sizes_are_refused(block):
+    with pytest.raises(ValueError, match="block must be"):
+        hj.simulate_batch(BALL, SEVEN[0], "flight", 0.0, 1.0, BALL_ARGS, block=block)
 
 
 def test_batched_modes_of_different_dimensions_per_execution():

@@ -14,7 +14,14 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._fast_rk import FastIController, UnrolledERK, fold, unrolled_rms_norm, unrolled_sum
+from hybridjax._fast_rk import (
+    FastIController,
+    UnrolledERK,
+    fold,
+    inverse_root,
+    unrolled_rms_norm,
+    unrolled_sum,
+)
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL
 
@@ -60,6 +67,24 @@ def test_fast_controller_equals_diffrax_pid_controller():
                                    5, state)
         assert bool(got[0]) == bool(want[0])
         np.testing.assert_allclose(got[1:3], want[1:3], rtol=1e-14)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
+def test_inverse_root_is_the_correctly_rounded_power(dtype):
+    # e^(-1/q) by Newton's method from the exponent bits, against an extended-precision power
+    # (np.longdouble; float64's own pow with the rounded exponent 1/q is ~|ln e| ulps off)
+    rng = np.random.default_rng(3)
+    lim = 12 if dtype == jnp.float64 else 6
+    e = (10.0 ** rng.uniform(-lim, lim, 20_000)).astype(dtype)
+    eps = np.finfo(dtype).eps
+    for q in (2, 3, 4, 5, 6, 8, 9):
+        got = np.asarray(jax.jit(lambda x, q=q: inverse_root(x, q))(jnp.asarray(e)), np.longdouble)
+        want = (1 / e.astype(np.longdouble)) ** (np.longdouble(1) / q)
+        assert np.max(np.abs(got / want - 1)) <= 4 * eps, q
+    special = jnp.asarray([0.0, np.inf, np.nan, 1.0], dtype)
+    np.testing.assert_array_equal(np.asarray(inverse_root(special, 5)), [np.inf, 0.0, np.nan, 1.0])
+    # a non-integer order falls back to the power itself
+    np.testing.assert_allclose(inverse_root(jnp.asarray(4.0, dtype), 2.5), 4.0 ** -0.4, rtol=4 * eps)
 
 
 def test_fast_controller_initial_step_equals_diffrax():
