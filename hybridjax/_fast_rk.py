@@ -156,15 +156,16 @@ class UnrolledERK:
 def inverse_root(e, q):
     """e^(-1/q) for e >= 0, as `(1 / e) ** (1 / q)` within a few ulps (0 -> inf, inf -> 0).
 
-    For an integer q <= 12 by Newton's method on y^(-q) = e, which needs no division,
-    y <- y (q + 1 - e y^q) / q (quadratic: the error eps -> (q + 1) eps^2 / 2), from a first
-    guess read off the exponent bits (the bits of a float are a piecewise-linear log2:
-    error < 10 %, so five iterations reach rounding, six for q > 6). XLA:CPU computes `pow` one element at a
-    time (~20 ns per float64); this is elementwise arithmetic it vectorises: the controller's
-    fusion on 10,000 lanes ~200 us -> ~60 us, a quarter of a pure step. Other q: `pow`.
+    For an integer q <= 9 (every unrolled solver's error order) by Newton's method on
+    y^(-q) = e, which needs no division, y <- y (q + 1 - e y^q) / q (quadratic: the error
+    eps -> (q + 1) eps^2 / 2), from a first guess read off the exponent bits (the bits of a
+    float are a piecewise-linear log2: error < 10 %, so five iterations reach rounding, six
+    for q > 6). XLA:CPU computes `pow` one element at a time (~20 ns per float64); this is
+    elementwise arithmetic it vectorises: the controller's fusion on 10,000 lanes ~200 us ->
+    ~60 us, a quarter of a pure step. Other q: `pow`.
     """
     q_int = int(q) if isinstance(q, (int, float)) and float(q).is_integer() else 0
-    if not 1 <= q_int <= 12 or e.dtype not in (jnp.float32, jnp.float64):
+    if not 1 <= q_int <= 9 or e.dtype not in (jnp.float32, jnp.float64):
         return (1 / e) ** (1 / q)
     ints = jnp.int64 if e.dtype == jnp.float64 else jnp.int32
     one = lax.bitcast_convert_type(jnp.ones((), e.dtype), ints).astype(e.dtype)  # the bits of 1.0

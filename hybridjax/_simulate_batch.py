@@ -111,7 +111,7 @@ def simulate_batch(
       `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
       and takes the small block in iterations where every execution that needs it fits in it:
       long runs with few events per step get the small block's speed, event-dense iterations
-      the large one's, for a second compilation of the rare work (+5 to +10 s on a 2-core
+      the large one's, for a second compilation of the rare work (+4 to +15 s on a 2-core
       CPU). In one process (`benchmarks/block_size.py`): Van der Pol relay at N = 10,000,
       `block=(312, None)` 0.60x the run time of the default (2.5 against 4.1 s; N/32 alone
       0.56x); bouncing ball at N = 10,000 0.95x (N/32 alone 2.0x); thermostat at
