@@ -55,14 +55,15 @@ def write_json(name: str, payload: dict) -> Path:
     return path
 
 
-def run_per_setting(script: str, settings: dict[str, str]) -> dict:
+def run_per_setting(script: str, settings: dict[str, str], env: dict[str, str] | None = None) -> dict:
     """`python script --one` once per XLA setting ({name: XLA_FLAGS to add}), each in a fresh
-    process (JAX reads XLA_FLAGS once, when it creates its CPU backend): {name: the JSON that
-    the run printed on its last line}."""
+    process (JAX reads XLA_FLAGS once, when it creates its CPU backend), with the environment
+    variables `env` added: {name: the JSON that the run printed on its last line}."""
     out = {}
     for name, flags in settings.items():
-        env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
-        res = subprocess.run([sys.executable, script, "--one"], env=env, capture_output=True, text=True,
+        proc_env = dict(os.environ, **(env or {}),
+                        XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flags).strip())
+        res = subprocess.run([sys.executable, script, "--one"], env=proc_env, capture_output=True, text=True,
                              check=True, cwd=os.path.dirname(os.path.abspath(script)))
         out[name] = json.loads(res.stdout.splitlines()[-1])
     return out

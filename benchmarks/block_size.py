@@ -1,8 +1,9 @@
 """Block size of the batched engine's rare work: run time and compile time, in one process.
 
 `simulate_batch` does the work only some executions need in an iteration (epoch start, event
-location, reset) on a block of them; those beyond the block wait an iteration (results do not
-depend on the size). Settings: the default (lanes/4), lanes/32, the pair (lanes/32, default)
+location, reset) on blocks of them, pass after pass until every one is done (results do not
+depend on the size). Settings: the default (lanes/16), lanes/4 (the default before the passes,
+when executions beyond the block waited an iteration), lanes/64, the pair (lanes/64, default)
 (both sizes compiled; the small one taken where it holds every execution that needs it) and
 the whole batch. Problems: the bouncing ball (A) and the Van der Pol relay (B) at N = 10,000,
 the thermostat (C) at N = 2,000; Tsit5, rtol = atol = 1e-9, float64. Each setting is compiled
@@ -27,12 +28,13 @@ import hybridjax as hj
 
 jax.config.update("jax_enable_x64", True)
 
+DEFAULT = "default (N/16)"
 CASES = {"A: bouncing ball": (ball, 10_000), "B: Van der Pol relay": (vdp_relay, 10_000),
          "C: thermostat": (thermostat, 2_000)}
 
 
 def settings(n: int) -> dict:
-    return {"default (N/4)": None, "N/32": n // 32, "(N/32, N/4)": (n // 32, None), "N": n}
+    return {DEFAULT: None, "N/4": n // 4, "N/64": n // 64, "(N/64, N/16)": (n // 64, None), "N": n}
 
 
 def main(rounds: int = 5):
@@ -61,8 +63,8 @@ def main(rounds: int = 5):
         if p.truth is not None:
             want, against = np.stack([p.truth(x, m)["final_state"] for x, m in zip(x0, m0, strict=True)]), "closed form"
         else:
-            want, against = np.asarray(sols["default (N/4)"][0].final_state), "default"
-        base = best["default (N/4)"]
+            want, against = np.asarray(sols[DEFAULT][0].final_state), "default"
+        base = best[DEFAULT]
         for label, block in settings(n).items():
             sol, compile_s = sols[label]
             err = float(np.max(np.abs(np.asarray(sol.final_state) - want)))

@@ -12,10 +12,9 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   iteration under a lane mask;
 - the work only some lanes need (the epoch-start test with its Lie derivatives and the
   epoch's first step; root and minimum location, the implicit-function event point and the reset)
-  runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into a
-  block of lanes/4, updated there and scattered back once per changed field (lanes beyond the
-  block wait an iteration: a step whose event is not located yet is taken again, identically,
-  in the next);
+  runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into
+  blocks of lanes/16, updated there and scattered back once per changed field, block after
+  block (a bounded loop of passes) until every lane that needs it is done;
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
   in every checkpoint (the ball's reverse pass at N = 1,000: 100-144 ms -> 23-31 ms);
@@ -170,15 +169,20 @@ def running_count(mask):
     return lax.associative_scan(jnp.add, mask.astype(jnp.int32))
 
 
-def first_lanes(mask, size: int, count=None):
-    """Indices of the first `size` lanes where `mask` holds, in order, padded with N:
-    `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there,
-    ~200-300 us on 10,000 lanes) as one prefix count and one scatter (~80-140 us).
-    `count`: `running_count(mask)`, where the caller has it."""
+def first_lanes(mask, size: int, count=None, skip=0):
+    """Indices of the first `size` lanes where `mask` holds after the first `skip` of them, in
+    order, padded with N: `jnp.nonzero(mask, size=size, fill_value=N)[0]` for skip = 0 (two
+    cumsums and a scatter-add there, ~200-300 us on 10,000 lanes) as one prefix count and one
+    scatter (~80-140 us). `count`: `running_count(mask)`, where the caller has it."""
     N = mask.shape[0]
     count = running_count(mask) if count is None else count
-    slot = jnp.where(mask, count - 1, size)  # size: dropped
+    slot = jnp.where(mask & (count > skip), count - 1 - skip, size)  # size: dropped
     return jnp.full((size,), N, jnp.int32).at[slot].set(jnp.arange(N, dtype=jnp.int32), mode="drop")
+
+
+def default_block(lanes: int) -> int:
+    """The default block size: every lane up to 256 of them, else max(64, lanes // 16)."""
+    return lanes if lanes <= 256 else max(64, lanes // 16)
 
 
 def _take_lanes(a, idx):
@@ -379,9 +383,11 @@ class BatchedLoop:
         self.save_ts = jnp.zeros((0,), dtype) if save_ts is None else save_ts
         self.save_order = jnp.argsort(self.save_ts)
         self.save_sorted = self.save_ts[self.save_order]
-        # Small batches compute the rare work on every lane; large ones on a block of lanes/4.
+        # Small batches compute the rare work on every lane; large ones on blocks of lanes/16
+        # (benchmarks/block_size.py: with passes until every lane is done, small blocks cost
+        # little in event-dense iterations and save much where few lanes need the work).
         small, block = block if isinstance(block, tuple) else (None, block)
-        self.block = (lanes if lanes <= 256 else max(256, lanes // 4)) if block is None else block
+        self.block = default_block(lanes) if block is None else block
         self.small_block = small if small is not None and small < min(self.block, lanes) else None
         self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
         self.error_order = solver.error_order(self.terms)
@@ -415,31 +421,41 @@ class BatchedLoop:
         return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
     def on_block(self, mask, fn, operand):
-        """`fn(idx, waiting, operand)` for the lanes in `mask` whose rare work is done now.
+        """`operand` after `fn(idx, operand)` on every lane in `mask`, a block at a time.
 
-        `idx` (block,): the first `block` lanes where `mask` holds, in order, padded with N
-        (spare slots); `waiting`: the lanes in `mask` beyond the block, which wait for a later
-        iteration (each function is compiled once, for one block size; with `small_block`, a
-        second time, for that size, taken where all of `mask` fits in it). With a block as
-        large as the batch, `idx` is None (every lane is computed where it is) and none waits.
-        `fn` gathers the block's lanes (`_gather_lanes`), updates them on the block alone and
-        scatters them back once per changed field (`_scatter_lanes`), rather than writing each
-        output into N-wide zeros and merging it into the state with N-wide selects.
+        `idx` (block,): the next `block` lanes where `mask` holds, in order, padded with N
+        (spare slots). Passes over blocks repeat, in a bounded loop, until every lane of
+        `mask` is done, so that no lane waits for a later iteration (when lanes beyond the block
+        took their step again in the next iteration instead, that wait added up: the ball at
+        N = 10,000 took 34 iterations for at most 21 steps). `fn` is compiled once, for one
+        block size; with `small_block`, a second time, for that size, taken (one pass) where all
+        of `mask` fits in it. With a block as large as the batch, `idx` is None (every lane is
+        computed where it is). `fn` gathers the block's lanes (`_gather_lanes`), updates them on
+        the block alone and scatters them back once per changed field (`_scatter_lanes`), rather
+        than writing each output into N-wide zeros and merging it into the state with N-wide
+        selects.
         """
-        def large(op, count=None):
-            if self.block >= self.N:
-                return fn(None, jnp.zeros_like(mask), op)
-            count = running_count(mask) if count is None else count
-            return fn(first_lanes(mask, self.block, count), mask & (count > self.block), op)
+        if self.block >= self.N:
+            return fn(None, operand)
+        count = running_count(mask)
+        total = count[-1]
+
+        def passes(op):
+            def one(c):
+                done, op = c
+                return done + self.block, fn(first_lanes(mask, self.block, count, skip=done), op)
+
+            _, op = eqxi.while_loop(lambda c: c[0] < total, one, (jnp.zeros_like(total), op),
+                                    max_steps=-(-self.N // self.block), kind=self.loop_kind,
+                                    checkpoints=(-(-self.N // self.block)
+                                                 if self.loop_kind == "checkpointed" else None))
+            return op
 
         small = self.small_block
         if small is None:
-            return large(operand)
+            return passes(operand)
         # Two compiled sizes: the small block where all of `mask` fits in it.
-        count = running_count(mask)
-        return lax.cond(count[-1] <= small,
-                        lambda op: fn(first_lanes(mask, small, count), jnp.zeros_like(mask), op),
-                        lambda op: large(op, count), operand)
+        return lax.cond(total <= small, lambda op: fn(first_lanes(mask, small, count), op), passes, operand)
 
     def take(self, tree, idx):
         """Lanes `idx` of every array in `tree` (lanes last); `idx` None: `tree` itself."""
@@ -625,8 +641,7 @@ class BatchedLoop:
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
 
-        def run(idx, _, carry):
-            # Active lanes beyond the block stay at the start of their epoch.
+        def run(idx, carry):
             st_all, rec = carry
             st = b0 = _gather_lanes(st_all, idx)
             active_now = self.in_block(idx, active)
@@ -780,11 +795,11 @@ class BatchedLoop:
             new = eqx.tree_at(lambda s: s.g_prev, new, jnp.where(acc, G_e[-1], new.g_prev))
         reached = acc & (t_next >= st.t1)
         if W:
-            def events(idx, waiting, carry):
+            def events(idx, carry):
                 # Lanes with an event in this step: undo the acceptance above, then locate,
                 # jump, and start the next epoch (all only when some lane needs it), on the
                 # block of those lanes.
-                new_all, rec = carry
+                new_all, rec, t_end = carry
                 out = self.lane_map(self._event_lane,
                                     *self.take((t, t_next, y, y1, jnp.stack(ks), st.mode, has, j, suspect,
                                                 i_d, x0_d, jnp.stack(times), dt_new, st.t1), idx),
@@ -792,14 +807,6 @@ class BatchedLoop:
                 # Each output feeds several fields' updates; computed once (`_materialize`).
                 out = _materialize(out, jnp.any(need))
                 back = ("t", "y", "f0", "g_prev", "zero_run")
-                if idx is not None:
-                    # Lanes beyond the block take this step again next iteration (same t, h, y:
-                    # the same step), as if it had not been tried.
-                    redo = (*back, "h", "num_steps", "num_rejected")
-                    new_all = eqx.tree_at(
-                        lambda s: [getattr(s, f) for f in redo], new_all,
-                        [jnp.where(waiting, getattr(st, f), getattr(new_all, f)) for f in redo])
-                new_all = _stop(new_all, reached & ~need, Status.T1_REACHED)
                 new = b0 = _gather_lanes(new_all, idx)
                 before = _gather_lanes(st, idx)
                 in_block = self.in_block(idx, need)
@@ -826,20 +833,23 @@ class BatchedLoop:
                         (new.at_start & ~go, jnp.where(go, out["next_g"], new.g_prev),
                          jnp.where(go, out["next_dt"], new.h), jnp.where(go, out["next_F"], new.f0)))
                 new_all = _scatter_lanes(new_all, b0, new, idx)
-                # A step is taken where accepted, unless its lane waits (an event lane's step
-                # ends at its event, t_star; elsewhere t_star is t_next).
-                t_end = sg(t_next)
+                # An event lane's step ends at its event, t_star (elsewhere t_star is t_next).
                 if self.save_ts.shape[0]:
                     t_star = jnp.where(ev, out["t_star"], self.take(t_end, idx))
                     t_end = t_star if idx is None else t_end.at[idx].set(t_star, mode="drop")
-                return new_all, rec, acc & ~waiting, t_end
+                return new_all, rec, t_end
+
+            def some_events(carry):
+                new, rec, t_end = carry
+                new = _stop(new, reached & ~need, Status.T1_REACHED)
+                return self.on_block(need, events, (new, rec, t_end))
 
             def no_events(carry):
-                new, rec = carry
-                return _stop(new, reached, Status.T1_REACHED), rec, acc, sg(t_next)
+                new, rec, t_end = carry
+                return _stop(new, reached, Status.T1_REACHED), rec, t_end
 
-            new, rec, took, t_end = lax.cond(jnp.any(need), lambda c: self.on_block(need, events, c),
-                                             no_events, (new, rec))
+            new, rec, t_end = lax.cond(jnp.any(need), some_events, no_events, (new, rec, sg(t_next)))
+            took = acc
         else:
             new = _stop(new, reached, Status.T1_REACHED)
             took, t_end = acc, sg(t_next)

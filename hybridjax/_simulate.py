@@ -17,6 +17,7 @@ from ._loop import Loop
 from ._solution import Solution
 from ._status import Status
 from ._system import HybridSystem, as_mode_index
+from ._validation import check_time_span
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:
@@ -290,9 +291,10 @@ def simulate(
 
     y0 = _initial_state(system, x0_arr, mode0, dtype)
     m0 = as_mode_index(system, mode0)
+    given = (t0, t1)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
-    t1 = eqx.error_if(t1, t1 < t0, "simulate: t1 must be >= t0.")
+    t1 = check_time_span(t0, t1, "simulate", given=given)
     loop = Loop(
         system,
         t1=t1,

@@ -3,7 +3,6 @@
 from typing import Any
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -15,6 +14,7 @@ from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_con
 from ._simulate import _checked_options, _initial_state, _save_times, simulate
 from ._solution import Solution
 from ._system import HybridSystem
+from ._validation import check_time_span
 
 
 def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
@@ -101,21 +101,18 @@ def simulate_batch(
       Not on the batched engine (yet): Zeno completions, implicit solvers, PID coefficients,
       `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
     - `saveat`: as `simulate`; the same save times for every execution.
-    - `block`: the most executions whose rare work (epoch start, event location, reset) is
-      done in one iteration, gathered into a block; the others wait an iteration (default:
-      all lanes up to 256 of them, else max(256, lanes/4)). Results do not depend on it; speed
-      does. A smaller block suits long runs with few events per step, a larger one event-dense
-      runs (one process each, 2-core CPU, Tsit5, 1e-9): Van der Pol relay at N = 10,000 with
-      N/32 1.9x faster than N/4 (2.2 against 4.1 s); bouncing ball at N = 10,000 with
-      `block=N` 1.2x faster (84 against 98 ms); thermostat at N = 2,000 fastest at N/4.
-      `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
-      and takes the small block in iterations where every execution that needs it fits in it:
-      long runs with few events per step get the small block's speed, event-dense iterations
-      the large one's, for a second compilation of the rare work (+4 to +15 s on a 2-core
-      CPU). In one process (`benchmarks/block_size.py`): Van der Pol relay at N = 10,000,
-      `block=(312, None)` 0.60x the run time of the default (2.5 against 4.1 s; N/32 alone
-      0.56x); bouncing ball at N = 10,000 0.95x (N/32 alone 2.0x); thermostat at
-      N = 2,000, `(62, None)` 1.04x (62 alone 4.5x).
+    - `block`: how many executions' rare work (epoch start, event location, reset) is done in
+      one pass, gathered into a block; passes repeat until every execution that needs the work
+      has it (default: all lanes up to 256 of them, else max(64, lanes/16)). Results do not
+      depend on it; speed does: each pass costs about the same however many of its slots are
+      used. In one process (`benchmarks/block_size.py`, 2-core CPU, Tsit5, 1e-9), run time
+      against the default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.75x,
+      N/4 1.67x; bouncing ball at N = 10,000 (events dense) N/64 1.46x, N/4 1.25x, N 1.13x;
+      thermostat at N = 2,000 N/4 1.03x, N 1.81x. `block=(small, large)` (`large` None: the
+      default) compiles the rare work for both sizes and takes the small block (one pass) in
+      iterations where it holds every execution that needs the work, for a second compilation
+      of it (+6 to +17 s on a 2-core CPU; (N/64, N/16): Van der Pol 0.90x, ball 1.18x,
+      thermostat 1.19x).
     - `lanes`: how many executions advance together (default: all N up to 20,000, else
       10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
       that a Monte Carlo batch keeps every lane busy while its executions take different
@@ -183,7 +180,7 @@ def simulate_batch(
     y0 = x0_arr.astype(dtype)
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
-    t1 = eqx.error_if(t1, t1 < t0, "simulate_batch: t1 must be >= t0.")
+    t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     num_lanes = int(lanes) if lanes is not None else (N if N <= 20_000 else 10_000)
     loop = BatchedLoop(
         system, t1=t1, args=args, args_axis=0 if args_batched else None,

@@ -6,12 +6,29 @@ arrays, so the checks are cheap and have no side effects.
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class DefinitionError(ValueError):
     """A mode or transition of a `HybridSystem` is ill-defined (message names the culprit)."""
+
+
+def check_time_span(t0, t1, where: str, given: tuple):
+    """`t1` unchanged if t1 >= t0 (elementwise). `given`: (t0, t1) as the caller passed them;
+    known values are checked here, at the call (`ValueError`), traced ones inside the compiled
+    run (`eqx.error_if`). The check at the call keeps host callbacks out of the compiled
+    program: JAX's persistent compilation cache does not store programs that have them."""
+    msg = f"{where}: t1 must be >= t0."
+    try:
+        bad = bool(np.any(np.asarray(given[1]) < np.asarray(given[0])))
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return eqx.error_if(t1, t1 < t0, msg)
+    if bad:
+        raise ValueError(msg)
+    return t1
 
 
 def _abstract_shape(fn, dim: int, args: Any, dtype) -> jax.ShapeDtypeStruct:

@@ -235,15 +235,16 @@ under `jax.vmap`."""),
             continue
         x = b[key]
         print(f"  {key:<19} {x['exec_per_s']:10.0f} executions/s  error {x['error']:.0e}  -> hybridjax {x['ratio']:.2g}x")"""),
-        ("md", """hybridjax is two orders of magnitude faster than the scipy loop, and the batched engine 1.3-3.4x its own
-per-execution engine under `vmap`. On the ball it is about as fast as the plain diffrax loop (0.87x in the baselines
-of the run shown and 1.22x in the same run's throughput table at the same batch: this machine's timings move that
-much); the plain loop is faster on Van der Pol (about 2.7x) and the thermostat (about 1.4x): it does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
+        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and the batched engine 2.1-3.3x
+its own per-execution engine under `vmap`. On the ball it is 1.7x the plain diffrax loop in the baselines of the run
+shown (1.6x in the same run's throughput table at the same batch: this machine's timings move by +-20 %); the plain
+loop is faster on Van der Pol (about 2x) and the thermostat (about 1.9x): it does less per step (no interior guard
+samples or minimum search, no third-order Lie derivatives
 at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short
 epochs, grazing, resets into guards, Zeno), see notebook 03 and the README's numerical limits. `bare_loop` is the
 ball alone on a bare hand-written loop (one Tsit5 step per execution per iteration, the guard and reset written in,
 none of those checks and no event record): what an event-driven integrator in JAX reaches here with nothing general,
-about 7x the lock-step loop and 6-9x hybridjax. `closed_form_jax` is the ball's closed form jitted over the batch: the
+about 11x the lock-step loop and 6x hybridjax. `closed_form_jax` is the ball's closed form jitted over the batch: the
 speed limit, ahead of all of them."""),
         ("md", """## Throughput against batch size
 

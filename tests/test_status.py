@@ -3,8 +3,10 @@
 import math
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 
@@ -91,7 +93,6 @@ def test_chattering_zero_time_loop():
 
 def test_throw_raises_outside_vmap():
     import equinox as eqx
-    import pytest
 
     with pytest.raises(eqx.EquinoxRuntimeError, match="max_epochs"):
         hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, BALL_ARGS,
@@ -99,8 +100,33 @@ def test_throw_raises_outside_vmap():
 
 
 def test_constant_step_size_needs_dt0():
-    import pytest
-
     with pytest.raises(ValueError, match="needs dt0"):
         hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 1.0, BALL_ARGS,
                     stepsize_controller=diffrax.ConstantStepSize())
+
+
+RUNS = {"simulate": (hj.simulate, jnp.array([1.0, 0.0])),
+        "simulate_batch": (hj.simulate_batch, jnp.array([[1.0, 0.0], [0.5, 0.1]]))}
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_t1_before_t0_is_refused_at_the_call(name):
+    run, x0 = RUNS[name]
+    with pytest.raises(ValueError, match=f"{name}: t1 must be >= t0"):
+        run(BALL, x0, "flight", 1.0, 0.5, BALL_ARGS)
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_known_times_keep_host_callbacks_out_of_the_program(name):
+    # JAX's persistent compilation cache does not store programs with host callbacks; with t0
+    # and t1 known at the call, their check is done there, and only traced ones are checked
+    # inside the run (`eqx.error_if`, a host callback).
+    run, x0 = RUNS[name]
+
+    def program(traced_t1: bool) -> str:
+        def f(x, t1):
+            return run(BALL, x, "flight", 0.0, t1 if traced_t1 else 1.0, BALL_ARGS).final_state
+        return jax.jit(f).lower(x0, 1.0).as_text()
+
+    assert "callback" not in program(traced_t1=False)
+    assert "callback" in program(traced_t1=True)

@@ -54,9 +54,13 @@ def test_near_grazing_crossing_is_found_and_flagged(graze, depth, grazing):
     sol = graze(c)
     assert int(sol.num_events) == 1, f"missed a crossing of depth {depth:g}"
     slope = math.sqrt(2 * G * depth)  # |dg/dt| at the crossing
-    # An error of one rounding unit in g moves the root by eps / slope.
+    # An error of one rounding unit in g moves the root by eps / slope; g on the dense output
+    # carries tens of them (its polynomial's coefficients are sums of the stages with weights of
+    # either sign), how many depends on the compiler's evaluation order. Measured at depths
+    # 1e-9 .. 1e-12: 0.2e-15 / slope with XLA's default flags; at -O0 (this suite) 0.3e-15 / slope
+    # with t1 hidden behind a host callback, 4.6e-15 / slope with t1 a compile-time constant.
     t_ref, dt_dc_ref = _crossing_time(c)
-    np.testing.assert_allclose(sol.event_times[0], t_ref, rtol=0, atol=1e-13 + 1e-15 / slope)
+    np.testing.assert_allclose(sol.event_times[0], t_ref, rtol=0, atol=1e-13 + 1e-14 / slope)
     assert bool(sol.grazing[0]) == grazing
     # The event-time derivative dt*/dc = 1 / |dg/dt| grows as depth^(-1/2) towards grazing, and
     # its relative error as (g dt*)/|dg/dt| ~ a few eps / depth: ill-conditioned, hence the flag.
