@@ -232,7 +232,8 @@ def simulate(
     - `x0`: the initial state, of `mode0`'s dimension (or padded to the largest dimension,
       which is required when `mode0` is traced, e.g. under `vmap`).
     - `mode0`: initial mode, by name or index.
-    - `t0`, `t1`: the time interval.
+    - `t0`, `t1`: the time interval, t1 >= t0: checked at the call (`ValueError`) where both
+      are known, inside the run (`eqx.error_if`) where either is traced.
     - `args`: any pytree passed to every flow, guard, reset and domain.
     - `solver`: a diffrax solver (default `Tsit5()`); implicit ones (`Kvaerno5()`) work.
     - `stepsize_controller`: a diffrax controller; default `PIDController(rtol=1e-8,

@@ -93,7 +93,9 @@ def simulate_batch(
     - `x0`: (N, dim) initial states (rows padded to the largest mode dimension when `mode0`
       is an array).
     - `mode0`: one mode (name or index) for all, or an (N,) integer array.
-    - `t0`, `t1`: scalars or (N,) arrays.
+    - `t0`, `t1`: scalars or (N,) arrays, t1 >= t0: checked at the call (`ValueError`) where
+      both are known, inside the run (`eqx.error_if`, a host callback, which keeps the program
+      out of JAX's persistent compilation cache) where either is traced.
     - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
