@@ -428,9 +428,9 @@ class BatchedLoop:
         (spare slots). Passes over blocks repeat, in a while loop of at most N/block passes
         (of the main loop's kind: checkpointed for reverse mode; a `bounded` loop copied the event
         record in every pass, 1.3-1.6x slower), until every lane of `mask` is done, so that no
-        lane waits for a later iteration (when lanes beyond the block
-        took their step again in the next iteration instead, that wait added up: the ball at
-        N = 10,000 took 34 iterations for at most 21 steps). `fn` is compiled once, for one
+        lane waits for a later iteration (when lanes beyond the block took their step again in
+        the next iteration instead, that wait added up: the ball at N = 10,000 took 34
+        iterations for at most 21 steps). `fn` is compiled once, for one
         block size; with `small_block`, a second time, for that size, taken (one pass) where all
         of `mask` fits in it. With a block as large as the batch, `idx` is None (every lane is
         computed where it is). `fn` gathers the block's lanes (`_gather_lanes`), updates them on
@@ -448,10 +448,10 @@ class BatchedLoop:
                 done, op = c
                 return done + self.block, fn(first_lanes(mask, self.block, count, skip=done), op)
 
+            most = -(-self.N // self.block)
             _, op = eqxi.while_loop(lambda c: c[0] < total, one, (jnp.zeros_like(total), op),
-                                    max_steps=-(-self.N // self.block), kind=self.loop_kind,
-                                    checkpoints=(-(-self.N // self.block)
-                                                 if self.loop_kind == "checkpointed" else None))
+                                    max_steps=most, kind=self.loop_kind,
+                                    checkpoints=most if self.loop_kind == "checkpointed" else None)
             return op
 
         small = self.small_block
