@@ -6,7 +6,7 @@ two versions are comparable only when taken in one process, alternating. This sc
 beside the working tree's `hybridjax`, compiles `simulate_batch` of both on the same problems
 (`problems.py`, Tsit5, rtol = atol = 1e-9, float64), runs them in turn (alternating order, best
 of `--rounds`), and reports the ratio new / base, the compile times, and whether final states,
-step counts, event counts and event times are bitwise identical.
+step counts, event counts and event times are bitwise identical (else by how much they differ).
 
     python benchmarks/ab_commits.py HEAD                      # working tree against HEAD
     python benchmarks/ab_commits.py e5abe04 --problems ball,vdp --rounds 11
@@ -47,6 +47,25 @@ def base_package(commit: str, into: Path):
     return importlib.import_module("hybridjax_base")
 
 
+def differences(a, b) -> str:
+    """"identical" where every compared field is bitwise equal; else, per differing field, the
+    largest difference (float fields; equal infinities count as equal) or how many entries
+    differ (integer fields)."""
+    out = []
+    for f in COMPARED:
+        x, y = np.asarray(getattr(a, f)), np.asarray(getattr(b, f))
+        if np.array_equal(x, y):
+            continue
+        if np.issubdtype(x.dtype, np.floating):
+            both = np.isfinite(x) & np.isfinite(y)
+            same_inf = (x == y) & ~both
+            worst = np.max(np.abs(np.where(both, x, 0.0) - np.where(both, y, 0.0)), initial=0.0)
+            out.append(f"{f} max |diff| {worst:.1e}" + ("" if np.all(both | same_inf) else " (finite/inf differ)"))
+        else:
+            out.append(f"{f} {int(np.sum(x != y))} entries differ")
+    return "identical" if not out else "differ: " + ", ".join(out)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("commit")
@@ -71,8 +90,7 @@ def main():
                 t = time.perf_counter()
                 compiled = fn.trace(x0).lower().compile()
                 runs[tag] = (compiled, time.perf_counter() - t, jax.block_until_ready(compiled(x0)))
-            same = all(np.array_equal(np.asarray(getattr(runs["base"][2], f)), np.asarray(getattr(runs["new"][2], f)))
-                       for f in COMPARED)
+            same = differences(runs["base"][2], runs["new"][2])
             best = {"base": float("inf"), "new": float("inf")}
             for r in range(opts.rounds):
                 for tag in (("base", "new") if r % 2 == 0 else ("new", "base")):
@@ -80,7 +98,7 @@ def main():
                     jax.block_until_ready(runs[tag][0](x0))
                     best[tag] = min(best[tag], time.perf_counter() - t)
             print(f"{name} (N = {n:,}): base {best['base'] * 1e3:.1f} ms, new {best['new'] * 1e3:.1f} ms, "
-                  f"new/base {best['new'] / best['base']:.3f}; identical {same}; compile base {runs['base'][1]:.1f} s, "
+                  f"new/base {best['new'] / best['base']:.3f}; {same}; compile base {runs['base'][1]:.1f} s, "
                   f"new {runs['new'][1]:.1f} s", flush=True)
 
 

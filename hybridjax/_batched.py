@@ -270,39 +270,53 @@ def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
     Returns `(value, slope)`, each a list of (a, b, [c_i]) with
     y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
     are linear in y0, y1 and the stage increments k_i); computed at trace time, once per
-    (solver, thetas, dtype) in a process, by one small compiled function (op by op, each
-    primitive would compile on its own: ~1.5 s, most of a trace).
+    (solver, thetas, dtype) in a process, by one small function compiled once per solver and
+    dtype (thetas padded to a multiple of `_THETA_PAD`, so that every call shares it): ~0.2 s
+    of the process's first trace. (Evaluated op by op, each primitive compiles on its own:
+    ~1.5 s; under `ensure_compile_time_eval`, each operation on the interpolation's constants
+    did: ~0.5 s.)
     """
     return _dense_weights(interpolation_cls, num_stages, tuple(float(t) for t in thetas),
                           jnp.dtype(dtype).name)
 
 
+_THETA_PAD = 16
+
+
 @functools.lru_cache(maxsize=64)
 def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str):
+    m = len(thetas)
+    dt = jnp.dtype(dtype)
+    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dt)
+    th[:m] = thetas
+    eye = np.eye(2 + num_stages, dtype=dt)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
+    # Compiled ahead of time and called: run now, even while the caller's program is being
+    # traced (a jitted call would be staged into it; under `ensure_compile_time_eval` each
+    # operation on constants inside it would be run, and compiled, on its own).
+    basis = (th, eye[:, :1], eye[:, 1:2], eye[:, 2:, None])
+    both = _dense_weights_fn(interpolation_cls).lower(*basis).compile()(*basis)
+    out = []
+    for W in both:
+        W = np.asarray(W)[:m, :, 0]  # (thetas, basis)
+        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in W])
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _dense_weights_fn(interpolation_cls):
+    """The compiled function behind `_dense_weights`: the interpolant and its theta-derivative
+    on the unit interval at each theta, for each basis vector."""
 
     def value(th, y0, y1, k):
-        one = jnp.ones((), dtype)
+        one = jnp.ones_like(th)
         return interpolation_cls(t0=0 * one, t1=one, y0=y0, y1=y1, k=k).evaluate(th)
 
     def slope(th, y0, y1, k):
         return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
 
-    dtype = jnp.dtype(dtype)
-    B = 2 + num_stages  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
-    eye = np.eye(B)
-    with jax.ensure_compile_time_eval():
-        basis = (jnp.asarray(eye[:, :1], dtype), jnp.asarray(eye[:, 1:2], dtype),
-                 jnp.asarray(eye[:, 2:, None], dtype))
-        th = jnp.asarray(thetas, dtype)
-        out = []
-        # One small compiled function: evaluated op by op, each primitive compiles on its own.
-        both = jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
-                                                in_axes=(0, None, None, None))(th, *b)
-                                       for fn in (value, slope)])
-        for W in both(th, *basis):
-            W = np.asarray(W)[:, :, 0]  # (thetas, basis)
-            out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in W])
-    return out
+    return jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
+                                            in_axes=(0, None, None, None))(th, *b)
+                                   for fn in (value, slope)])
 
 
 SAVE_WINDOW = 16  # sorted save times interpolated per pass

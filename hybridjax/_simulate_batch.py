@@ -33,6 +33,24 @@ def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
     return None
 
 
+_DERIVATIVE_TRACERS = ("JVPTracer", "LinearizeTracer")  # jax.jvp; jax.grad, jax.linearize
+
+
+def carries_derivatives(tree) -> bool:
+    """Whether some leaf of `tree` is being differentiated (`jax.grad`, `jax.vjp`, `jax.jvp`,
+    `jax.linearize`, under any other transformations): a JAX tracer of automatic
+    differentiation, looked for through the tracers that wrap it (`vmap`'s, `jit`'s). A
+    heuristic for a default, not a guarantee: a derivative that enters only through a
+    closure (a flow that captures a traced parameter) is not seen."""
+    for leaf in jtu.tree_leaves(tree):
+        x, depth = leaf, 0
+        while isinstance(x, jax.core.Tracer) and depth < 64:
+            if type(x).__name__ in _DERIVATIVE_TRACERS:
+                return True
+            x, depth = getattr(x, "primal", getattr(x, "val", None)), depth + 1
+    return False
+
+
 def _lanes(x) -> int:
     return int(np.shape(x)[0])
 
@@ -105,7 +123,9 @@ def simulate_batch(
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
-      has it (default: all lanes up to 256 of them, else max(64, lanes/16)). Results do not
+      has it (default: all lanes up to 256 of them, else max(64, lanes/16); all lanes when
+      `jax.grad` or another derivative is being taken through the call with the default
+      `adjoint`, which halves the reverse pass's compile time). Results do not
       depend on it; speed does: each pass costs about the same however many of its slots are
       used. In one process (`benchmarks/block_size.py`, 2-core CPU, Tsit5, 1e-9), run time
       against the default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.75x,
@@ -184,6 +204,11 @@ def simulate_batch(
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     num_lanes = int(lanes) if lanes is not None else (N if N <= 20_000 else 10_000)
+    if block is None and kind == "checkpointed" and carries_derivatives((x0, t0_in, t1_in, args, system)):
+        # Under reverse mode, passes over blocks are a checkpointed loop nested in the main
+        # one: the reverse pass compiles about twice as long (ball, N = 1,000: 57 s against
+        # 26 s) and runs no faster (benchmarks/gradient_cost.py).
+        block = num_lanes
     loop = BatchedLoop(
         system, t1=t1, args=args, args_axis=0 if args_batched else None,
         solver=UnrolledERK(solver_p), controller=FastIController(controller), dt0=dt0,

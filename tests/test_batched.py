@@ -24,6 +24,7 @@ from hybridjax._batched import (
     first_lanes,
     running_count,
 )
+from hybridjax._simulate_batch import carries_derivatives
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
 
@@ -218,6 +219,31 @@ def test_two_block_sizes_run_the_same_executions():
 def test_bad_block_sizes_are_refused(block):
     with pytest.raises(ValueError, match="block must be"):
         hj.simulate_batch(BALL, SEVEN[0], "flight", 0.0, 1.0, BALL_ARGS, block=block)
+
+
+def test_derivatives_are_seen_through_other_transformations():
+    # The default block under differentiation (all lanes) depends on this; the truth is which
+    # transformation is applied.
+    seen = []
+
+    def f(x):
+        seen.append(carries_derivatives({"x": x}))
+        return jnp.sum(x ** 2)
+
+    x, xs = jnp.ones(3), jnp.ones((2, 3))
+    jax.grad(f)(x)
+    jax.jit(jax.grad(f))(x)
+    jax.vmap(jax.grad(f))(xs)
+    jax.grad(lambda x: jnp.sum(jax.vmap(f)(x)))(xs)
+    jax.jvp(f, (x,), (x,))
+    jax.jacrev(f)(x)
+    assert seen == [True] * 6
+    seen.clear()
+    f(x)
+    jax.jit(f)(x)
+    jax.vmap(f)(xs)
+    jax.grad(lambda y: f(x) * y)(2.0)  # differentiated, but not with respect to x
+    assert seen == [False] * 4
 
 
 def test_batched_modes_of_different_dimensions_per_execution():
