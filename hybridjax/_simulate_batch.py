@@ -124,8 +124,9 @@ def simulate_batch(
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/16); all lanes when
-      `jax.grad` or another derivative is being taken through the call with the default
-      `adjoint`, which halves the reverse pass's compile time). Results do not
+      `jax.grad`, `jax.jvp` or another derivative is being taken through the call with the
+      default `adjoint` or `ForwardMode`: the reverse pass compiles in half the time, the
+      forward-mode one runs in 0.75-0.86x). Results do not
       depend on it; speed does: each pass costs about the same however many of its slots are
       used. In one process (`benchmarks/block_size.py`, 2-core CPU, Tsit5, 1e-9), run time
       against the default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.75x,
@@ -204,10 +205,11 @@ def simulate_batch(
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     num_lanes = int(lanes) if lanes is not None else (N if N <= 20_000 else 10_000)
-    if block is None and kind == "checkpointed" and carries_derivatives((x0, t0_in, t1_in, args, system)):
+    if block is None and kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system)):
         # Under reverse mode, passes over blocks are a checkpointed loop nested in the main
         # one: the reverse pass compiles about twice as long (ball, N = 1,000: 57 s against
-        # 26 s) and runs no faster (benchmarks/gradient_cost.py).
+        # 26 s) and runs no faster; under forward mode, one pass over every lane runs 0.75-0.86x
+        # the time of the passes, and compiles 0.8x (benchmarks/gradient_cost.py).
         block = num_lanes
     loop = BatchedLoop(
         system, t1=t1, args=args, args_axis=0 if args_batched else None,
