@@ -208,8 +208,9 @@ def simulate_batch(
     if block is None and kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system)):
         # Under reverse mode, passes over blocks are a checkpointed loop nested in the main
         # one: the reverse pass compiles about twice as long (ball, N = 1,000: 57 s against
-        # 26 s) and runs no faster; under forward mode, one pass over every lane runs 0.75-0.86x
-        # the time of the passes, and compiles 0.8x (benchmarks/gradient_cost.py).
+        # 26 s) and runs in 0.8-2x the time of every lane; under forward mode, one pass over
+        # every lane runs in 0.75-0.86x the time of the passes and compiles in 0.8x
+        # (benchmarks/gradient_cost.py).
         block = num_lanes
     loop = BatchedLoop(
         system, t1=t1, args=args, args_axis=0 if args_batched else None,
