@@ -290,11 +290,8 @@ def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str
     th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dt)
     th[:m] = thetas
     eye = np.eye(2 + num_stages, dtype=dt)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
-    # Compiled ahead of time and called: run now, even while the caller's program is being
-    # traced (a jitted call would be staged into it; under `ensure_compile_time_eval` each
-    # operation on constants inside it would be run, and compiled, on its own).
     basis = (th, eye[:, :1], eye[:, 1:2], eye[:, 2:, None])
-    both = _dense_weights_fn(interpolation_cls).lower(*basis).compile()(*basis)
+    both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(*basis)
     out = []
     for W in both:
         W = np.asarray(W)[:m, :, 0]  # (thetas, basis)
@@ -303,9 +300,14 @@ def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str
 
 
 @functools.lru_cache(maxsize=16)
-def _dense_weights_fn(interpolation_cls):
+def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype: str):
     """The compiled function behind `_dense_weights`: the interpolant and its theta-derivative
-    on the unit interval at each theta, for each basis vector."""
+    on the unit interval at each of `num_thetas` thetas, for each basis vector.
+
+    Compiled ahead of time, once per key, and called: it runs at once, even while the caller's
+    program is being traced (a jitted call would be staged into it; under
+    `ensure_compile_time_eval` each operation on constants inside it would be run, and
+    compiled, on its own)."""
 
     def value(th, y0, y1, k):
         one = jnp.ones_like(th)
@@ -314,9 +316,13 @@ def _dense_weights_fn(interpolation_cls):
     def slope(th, y0, y1, k):
         return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
 
+    dt = jnp.dtype(dtype)
+    B = 2 + num_stages
+    shapes = [jax.ShapeDtypeStruct(shape, dt)
+              for shape in ((num_thetas,), (B, 1), (B, 1), (B, num_stages, 1))]
     return jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
                                             in_axes=(0, None, None, None))(th, *b)
-                                   for fn in (value, slope)])
+                                   for fn in (value, slope)]).lower(*shapes).compile()
 
 
 SAVE_WINDOW = 16  # sorted save times interpolated per pass
