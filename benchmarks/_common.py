@@ -11,6 +11,14 @@ from pathlib import Path
 import jax
 
 
+def one_device_per_core() -> int:
+    """Give JAX's CPU backend one device per core, as the README advises (`simulate_batch`
+    splits the executions between them); before any JAX computation. Returns the count."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    jax.config.update("jax_num_cpu_devices", cores)
+    return cores
+
+
 def machine_info() -> dict:
     import diffrax
     import equinox
@@ -27,7 +35,7 @@ def machine_info() -> dict:
         pass
     return dict(
         cpu=cpu, cores=os.cpu_count(), platform=platform.platform(),
-        device=str(jax.devices()[0]), python=platform.python_version(),
+        device=str(jax.devices()[0]), num_devices=len(jax.devices()), python=platform.python_version(),
         jax=jax.__version__, diffrax=diffrax.__version__, equinox=equinox.__version__,
         numpy=numpy.__version__, x64=bool(jax.config.jax_enable_x64),
         xla_flags=os.environ.get("XLA_FLAGS", ""),
