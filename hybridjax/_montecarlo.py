@@ -2,8 +2,9 @@
 
 Each chunk of executions is one call of a jitted `simulate_batch` (the batched engine, or
 `vmap(simulate)` where it does not apply), its batch axis sharded over `jax.devices()`
-with `jax.sharding` (GPUs, or host devices forced with
-`XLA_FLAGS=--xla_force_host_platform_device_count=N`). After each chunk only small
+with `jax.sharding` (GPUs, or CPU devices asked for with
+`jax.config.update("jax_num_cpu_devices", N)` right after `import jax`), each device running
+the batched loop on its part (`simulate_batch(devices=...)`). After each chunk only small
 per-execution results (status, events, final time/mode/state, Zeno time) come back to the
 host, and running summaries are updated, so memory stays bounded however many executions run;
 `keep="summary"` keeps nothing per execution.
@@ -180,7 +181,7 @@ def monte_carlo(
 
     def run_chunk(x, a):
         sol = simulate_batch(system, x, mode_index, t0, t1, a, args_batched=a is not None,
-                             **simulate_kwargs)
+                             devices=devices, **simulate_kwargs)
         return dict(status=sol.status_code, num_events=sol.num_events, final_time=sol.final_time,
                     final_mode=sol.final_mode, final_state=sol.final_state, zeno_time=sol.zeno_time)
 
