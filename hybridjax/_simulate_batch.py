@@ -154,8 +154,10 @@ def simulate_batch(
       On a 2-core CPU (Tsit5, 1e-9) two devices run the bouncing ball at N = 10,000 2.1x and
       Van der Pol at N = 10,000 2.1x faster than one (no gain at N = 1,000 for the ball).
       A reverse-mode derivative (`jax.grad` through the call, default `adjoint`) runs on one
-      device; `diffrax.ForwardMode()` derivatives are split like the values. Inside your own
-      `jax.pmap` / `jax.shard_map`, pass `devices=1`.
+      device; `diffrax.ForwardMode()` derivatives are split like the values. A reverse-mode
+      derivative that reaches the call only through a closure (a flow capturing a traced
+      parameter) is not seen, and fails in equinox's closure conversion: pass `devices=1`.
+      Inside your own `jax.pmap` / `jax.shard_map`, pass `devices=1` too.
 
     Differentiable like `simulate` (`jax.grad`, `jax.jacrev` with the default `adjoint`,
     `jax.jacfwd` with `diffrax.ForwardMode()`), with respect to `x0`, `args`, `t0`, `t1`.
@@ -219,8 +221,9 @@ def simulate_batch(
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
-    # Reverse mode through `jax.shard_map` fails inside equinox's checkpointed loop (its
-    # closure conversion sees the global shapes): a reverse-mode derivative runs on one device.
+    # Reverse mode through `jax.shard_map` fails inside equinox's checkpointed loop: its closure
+    # conversion compares the inputs' sharding metadata, which shard_map changes (equinox
+    # 0.13.8; upstream: patrick-kidger/equinox#1261, diffrax#765). It runs on one device.
     reverse = differentiated and not isinstance(adjoint, diffrax.ForwardMode)
     devs = _devices(devices, N)[:1 if reverse else None]
     D = len(devs)
