@@ -224,28 +224,29 @@ fig.tight_layout(); plt.show()"""),
         ("md", """## Against what you would write otherwise
 
 Same problems, same tolerance ($10^{-9}$), same run. hybridjax is `jax.jit(hj.simulate_batch)` (the batched
-engine); against it: `scipy.integrate.solve_ivp` with terminal events in a Python loop over epochs, a plain diffrax
+engine), with the batch split over the machine's cores (`benchmarks/work_precision.py` asks JAX for one CPU device
+per core; `one_device` is the same engine with `devices=1`); against it, each on one core as written: `scipy.integrate.solve_ivp` with terminal events in a Python loop over epochs, a plain diffrax
 loop (a jitted `vmap` of a bounded while loop of `diffeqsolve` + `Event`), and hybridjax's own per-execution engine
 under `jax.vmap`."""),
         ("code", """for name, b in res["baselines"].items():
     print(name)
     print(f"  hybridjax           {b['ours_exec_per_s']:10.0f} executions/s")
-    for key in ("scipy_RK45", "scipy_DOP853", "diffrax_lockstep", "engine_vmap", "bare_loop", "closed_form_jax"):
+    for key in ("one_device", "scipy_RK45", "scipy_DOP853", "diffrax_lockstep", "engine_vmap", "bare_loop",
+                "closed_form_jax"):
         if key not in b:
             continue
         x = b[key]
         print(f"  {key:<19} {x['exec_per_s']:10.0f} executions/s  error {x['error']:.0e}  -> hybridjax {x['ratio']:.2g}x")"""),
-        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and the batched engine 2.1-3.3x
-its own per-execution engine under `vmap`. On the ball it is 1.7x the plain diffrax loop in the baselines of the run
-shown (1.6x in the same run's throughput table at the same batch: this machine's timings move by +-20 %); the plain
-loop is faster on Van der Pol (about 2x) and the thermostat (about 1.9x): it does less per step (no interior guard
-samples or minimum search, no third-order Lie derivatives
+        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and 6-15x its own
+per-execution engine under `vmap`. Against the plain diffrax loop it is about 4x on the ball and on Van der Pol at
+10,000 executions on two cores, about 1.8x on one (`one_device`), and ahead on the thermostat only with both cores.
+The plain loop does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
 at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short
 epochs, grazing, resets into guards, Zeno), see notebook 03 and the README's numerical limits. `bare_loop` is the
 ball alone on a bare hand-written loop (one Tsit5 step per execution per iteration, the guard and reset written in,
 none of those checks and no event record): what an event-driven integrator in JAX reaches here with nothing general,
-about 11x the lock-step loop and 6x hybridjax. `closed_form_jax` is the ball's closed form jitted over the batch: the
-speed limit, ahead of all of them."""),
+on one core. `closed_form_jax` is the ball's closed form jitted over the batch: the speed limit, ahead of all of
+them. Timings on a shared 2-core machine move by +-20 % between runs: read the ratios, from one run."""),
         ("md", """## Throughput against batch size
 
 Executions per second grow with the batch until the machine's vector units are busy."""),
