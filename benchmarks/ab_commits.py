@@ -11,8 +11,8 @@ step counts, event counts and event times are bitwise identical (else by how muc
     python benchmarks/ab_commits.py HEAD                      # working tree against HEAD
     python benchmarks/ab_commits.py e5abe04 --problems ball,vdp --rounds 11
 
-Problems: ball (A, N = 10,000), vdp (B, N = 1,000), vdp10k (B, N = 10,000), thermo (C,
-N = 2,000). Prints one line per problem; writes nothing (a tool for changes, not a result).
+Problems: ball (A, N = 10,000), ballsave (the same with 201 saved states), vdp (B, N = 1,000),
+vdp10k (B, N = 10,000), thermo (C, N = 2,000). Prints one line per problem; writes nothing (a tool for changes, not a result).
 """
 
 import argparse
@@ -31,10 +31,13 @@ import numpy as np
 import problems
 
 ROOT = Path(__file__).resolve().parents[1]
-CASES = {"ball": (problems.ball, "bouncing_ball", 10_000), "vdp": (problems.vdp_relay, "van_der_pol_relay", 1_000),
-         "vdp10k": (problems.vdp_relay, "van_der_pol_relay", 10_000),
-         "thermo": (problems.thermostat, "thermostat", 2_000)}
-COMPARED = ("final_state", "num_steps", "num_events", "event_times")
+# name: (problem, example, N, number of save times over [0, t1])
+CASES = {"ball": (problems.ball, "bouncing_ball", 10_000, 0),
+         "ballsave": (problems.ball, "bouncing_ball", 10_000, 201),
+         "vdp": (problems.vdp_relay, "van_der_pol_relay", 1_000, 0),
+         "vdp10k": (problems.vdp_relay, "van_der_pol_relay", 10_000, 0),
+         "thermo": (problems.thermostat, "thermostat", 2_000, 0)}
+COMPARED = ("final_state", "num_steps", "num_events", "event_times", "ys", "saved_modes")
 
 
 def base_package(commit: str, into: Path):
@@ -79,14 +82,15 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         base = base_package(opts.commit, Path(tmp))
         for name in opts.problems.split(","):
-            make, example, n = CASES[name]
+            make, example, n, saves = CASES[name]
             p = make()
             x0, m0 = p.sample(np.random.default_rng(0), n)
             runs = {}
             for tag, hj in (("base", base), ("new", hybridjax)):
                 system = getattr(hj.examples, example)()  # built from that version's classes
                 fn = jax.jit(lambda x, hj=hj, system=system: hj.simulate_batch(
-                    system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs))
+                    system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
+                    saveat=np.linspace(0.0, p.t1, saves) if saves else None))
                 t = time.perf_counter()
                 compiled = fn.trace(x0).lower().compile()
                 runs[tag] = (compiled, time.perf_counter() - t, jax.block_until_ready(compiled(x0)))
