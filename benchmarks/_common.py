@@ -11,14 +11,6 @@ from pathlib import Path
 import jax
 
 
-def one_device_per_core() -> int:
-    """Give JAX's CPU backend one device per core, as the README advises (`simulate_batch`
-    splits the executions between them); before any JAX computation. Returns the count."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    jax.config.update("jax_num_cpu_devices", cores)
-    return cores
-
-
 def machine_info() -> dict:
     import diffrax
     import equinox

@@ -6,10 +6,10 @@ finite differences and printed as JSON.
 """
 
 import json
-import os
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,10 +77,8 @@ print("RESULT" + json.dumps(out))
 
 @pytest.fixture(scope="module")
 def split_results():
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "")  # the test suite's compile settings
-    proc = subprocess.run([sys.executable, "-c", SPLIT_SCRIPT], capture_output=True, text=True, env=env,
-                          timeout=600)
+    # The environment is inherited, with it the suite's compile settings (`XLA_FLAGS`, conftest.py).
+    proc = subprocess.run([sys.executable, "-c", SPLIT_SCRIPT], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1]
     return json.loads(line[len("RESULT"):])
@@ -116,8 +114,6 @@ def test_devices_argument_is_checked(devices):
 
 
 def test_one_device_given_as_a_list():
-    import jax
-
     x0 = jnp.array([[1.0, 0.0], [1.2, 0.0]])
     sol = hj.simulate_batch(BALL, x0, "flight", 0.0, 0.3, BALL_ARGS, devices=jax.devices()[:1])
     # Free fall, no bounce before t = 0.3: h = h0 - g t^2 / 2.
