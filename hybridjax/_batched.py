@@ -9,7 +9,8 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
 
 - the work every step needs (stages, controller, guard samples on the dense output, crossing
   and dip detection) is written on the lanes-last arrays, each field updated once per
-  iteration under a lane mask;
+  iteration under a lane mask; the guards are sampled by *slot*, a mode's own watched
+  functions (`Kernels.to_slots`), so the width is the most any one mode watches, not all;
 - the work only some lanes need (the epoch-start test with its Lie derivatives and the
   epoch's first step; root and minimum location, the implicit-function event point and the reset)
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into
@@ -70,7 +71,7 @@ class Lanes(eqx.Module):
     at_start: jax.Array
     done: jax.Array
     status: jax.Array  # (N,) int32: `Status` codes
-    g_prev: jax.Array  # (W, N)
+    g_prev: jax.Array  # (S, N): the watched functions' values, by slot (`Kernels.to_slots`)
     num_events: jax.Array
     zero_run: jax.Array
     num_steps: jax.Array
@@ -144,9 +145,18 @@ class LaneRecord(eqx.Module):
 
 
 def _stop(st: Lanes, pred, status: Status) -> Lanes:
-    pred = pred & ~st.done
-    return eqx.tree_at(lambda s: (s.done, s.status), st,
-                       (st.done | pred, jnp.where(pred, status._value, st.status)))
+    """`st` with the running lanes where `pred` holds stopped with `status`."""
+    return _stop_first(st, (pred, status))
+
+
+def _stop_first(st: Lanes, *rules: tuple) -> Lanes:
+    """`_stop` for several (pred, status) rules in order (the first that holds wins), in one
+    update of `done` and `status`: each update is a pass over every lane."""
+    done, code = st.done, st.status
+    for pred, status in rules:
+        pred = pred & ~done
+        done, code = done | pred, jnp.where(pred, status._value, code)
+    return eqx.tree_at(lambda s: (s.done, s.status), st, (done, code))
 
 
 def as_status(codes) -> Status:
@@ -227,40 +237,52 @@ def _materialize(tree, pred):
     return lax.cond(pred, lambda x: x, lambda x: jtu.tree_map(jnp.zeros_like, x), tree)
 
 
+def _dip_interval(V0, V1, D0, D1, h):
+    """A dip test on one sample interval of length h: the cubic Hermite model of g from values
+    V and slopes D at its ends. Returns (crossing, dip candidate, u): u the offset of the
+    model's estimated minimum, where g dips <= 0 without a sign change at the ends."""
+    D0 = jnp.where(jnp.isfinite(D0), D0, 0.0)
+    D1 = jnp.where(jnp.isfinite(D1), D1, 0.0)
+    shape = (V0 > 0) & (V1 > 0) & (D0 < 0) & (D1 > 0)
+    den = jnp.where(shape, D0 - D1, -1.0)
+    u = jnp.clip((V1 - V0 - D1 * h) / den, 0.0, h)
+    return (V1 <= 0) & (V0 > 0), shape & (V0 + D0 * u <= 0), u
+
+
 def _detect(g_prev, G_e, D_e, times, pred):
     """`first_crossings` and `dip_candidates` of `_events`, lanes last, the sample axis unrolled.
 
     `G_e`, `D_e`: guard values and slopes at the step's start, interior points and end (lists
-    of (W, N)); `times` the sample times ((N,) each); `pred` as `_materialize`'s. Returns
-    (has, j, suspect, i_d, x0_d), (W, N).
+    of (S, N), S the watched functions' slots); `times` the sample times ((N,) each); `pred` as
+    `_materialize`'s. Returns (has, j, suspect, i_d, x0_d), (S, N).
     """
     V = [g_prev, *G_e[1:]]
-    cross, cand, at = [], [], []
-    for i in range(len(V) - 1):
-        V0, V1, D0, D1 = V[i], V[i + 1], D_e[i], D_e[i + 1]
-        cross.append((V1 <= 0) & (V0 > 0))
-        D0 = jnp.where(jnp.isfinite(D0), D0, 0.0)
-        D1 = jnp.where(jnp.isfinite(D1), D1, 0.0)
-        h = times[i + 1] - times[i]
-        shape = (V0 > 0) & (V1 > 0) & (D0 < 0) & (D1 > 0)
-        den = jnp.where(shape, D0 - D1, -1.0)
-        u = jnp.clip((V1 - V0 - D1 * h) / den, 0.0, h)
-        cand.append(shape & (V0 + D0 * u <= 0))
-        at.append(times[i] + u)
+    m = len(V) - 1
+    parts = [_dip_interval(V[i], V[i + 1], D_e[i], D_e[i + 1], times[i + 1] - times[i]) for i in range(m)]
     # Per interval, computed once; the first crossing and the first dip candidate from them.
-    cross, cand, at = _materialize((cross, cand, at), pred)
+    cross, cand = _materialize(([p[0] for p in parts], [p[1] for p in parts]), pred)
     has = jnp.zeros(g_prev.shape, bool)
     j = jnp.zeros(g_prev.shape, jnp.int32)
     suspect = jnp.zeros(g_prev.shape, bool)
     i_d = jnp.zeros(g_prev.shape, jnp.int32)
-    x0_d = jnp.broadcast_to(times[0], g_prev.shape)
-    for i in range(len(cross)):
+    for i in range(m):
         j = jnp.where(cross[i] & ~has, i, j)
         has = has | cross[i]
-        first = cand[i] & ~suspect
-        i_d = jnp.where(first, i, i_d)
-        x0_d = jnp.where(first, at[i], x0_d)
+        i_d = jnp.where(cand[i] & ~suspect, i, i_d)
         suspect = suspect | cand[i]
+
+    # The estimated minimum on the first candidate's interval alone, from its values picked out
+    # again: materialised for every interval (as before), it cost Van der Pol at N = 10,000
+    # 1.17x the run time; under a `lax.cond` on any candidate, 1.04x (candidates are common there).
+    def pick(xs):
+        out = xs[0]
+        for i in range(1, m):
+            out = jnp.where(i_d == i, xs[i], out)
+        return out
+
+    t0 = pick(times[:m])
+    _, _, u = _dip_interval(pick(V[:m]), pick(V[1:]), pick(D_e[:m]), pick(D_e[1:]), pick(times[1:]) - t0)
+    x0_d = jnp.where(suspect, t0 + u, times[0])
     return has, j, suspect, i_d, x0_d
 
 
@@ -488,26 +510,32 @@ class BatchedLoop:
         """Which of the block's slots hold a lane: `mask` itself without a block."""
         return mask if idx is None else idx < self.N
 
-    def flows(self, mode, t, y, args):
-        """F_mode(t, y) on every lane: (n, N).
+    def flows(self, mode, t, y, args, scale=None):
+        """F_mode(t, y) on every lane, times `scale` ((N,)) if given: (n, N).
 
         One vmapped call per component, stacked: vmapped whole, the field comes out (N, n) and
         every stage that reads it transposes it inside its fusion (strided reads); per component
         each output is already a lanes-last vector. The pure step on 10,000 lanes: 42 -> 34 ms
-        (oscillator, 77 steps, in one process; identical values). Above PER_COMPONENT_MAX_DIM
-        components the field is traced once, as before, to keep the trace small.
+        (oscillator, 77 steps, in one process; identical values). Each component is cut from
+        each mode's field before the modes' selection (`Kernels.flow_component`): selected
+        whole, XLA kept the (N, n) field: Van der Pol at N = 10,000 0.86x the run time.
+        Above PER_COMPONENT_MAX_DIM components the field is traced once, as before, to keep
+        the trace small; with one component it is the field itself (the thermostat ran 1.15x
+        slower through `flow_component`).
         """
-        if self.kern.n > PER_COMPONENT_MAX_DIM:  # n traced copies of the field: compile time
-            return self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
-        return jnp.stack([self.lane_map(lambda m, tt, yy, a, i=i: self.kern.flow(m, tt, yy, a)[i],
-                                        mode, t, y, args=args) for i in range(self.kern.n)])
+        if self.kern.n == 1 or self.kern.n > PER_COMPONENT_MAX_DIM:
+            F = self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
+            return F if scale is None else F * scale
+        comps = [self.lane_map(lambda m, tt, yy, a, i=i: self.kern.flow_component(m, tt, yy, a, i),
+                               mode, t, y, args=args) for i in range(self.kern.n)]
+        return jnp.stack(comps if scale is None else [c * scale for c in comps])
 
     # ------------------------------------------------------------------ init
     def fresh(self, ids, next_exec) -> Lanes:
         """Lanes at the start of executions `ids` (clipped to the last one)."""
         t0, y0, mode0 = self.inputs
         t0, y0, mode0, t1 = (jnp.take(a, ids, axis=-1, mode="clip") for a in (t0, y0, mode0, self.t1))
-        N, n, W, dt = ids.shape[0], self.kern.n, self.kern.num_watch, self.dtype
+        N, n, W, dt = ids.shape[0], self.kern.n, self.kern.num_slots, self.dtype
         return Lanes(
             t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dt), f0=jnp.zeros((n, N), dt),
             at_start=jnp.ones((N,), bool), done=jnp.zeros((N,), bool),
@@ -658,8 +686,8 @@ class BatchedLoop:
             simultaneous = jnp.sum(fire[:K]) > 1
         else:
             y_after, simultaneous = y, jnp.array(False)
-        return dict(fire=any_fire, k=k, g_start=g_start.astype(self.dtype), F=F, finite=finite,
-                    dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous)
+        return dict(fire=any_fire, k=k, g_start=kern.to_slots(mode, g_start.astype(self.dtype)), F=F,
+                    finite=finite, dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous)
 
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
@@ -695,6 +723,11 @@ class BatchedLoop:
         reset; then the next epoch's start test (`_start_lane`) on the reset state, so that the
         common case (no guard fires at once) needs no separate start stage."""
         kern, K, W = self.kern, self.kern.num_transitions, self.kern.num_watch
+        s_ext = jnp.stack(s_ext)
+        # From the step's slots to every watched function (those not of `mode` never fire).
+        has, suspect = kern.from_slots(mode, has, False), kern.from_slots(mode, suspect, False)
+        j, i_d = kern.from_slots(mode, j, 0), kern.from_slots(mode, i_d, 0)
+        x0_d = kern.from_slots(mode, x0_d, s_ext[0])
         interp_sg = ChebyshevDense.from_stages(self.cheb, sg(t), sg(t_next), sg(y), sg(y1), sg(ks))
         a_sg = sg(args)
         s = s_ext[1:]
@@ -757,10 +790,16 @@ class BatchedLoop:
         if not solver.fsal:
             f0 = self.flows(st.mode, t, y, args)
         ks, z, f_last = [f0 * hh], y, f0
-        for c_i, a_i in zip(solver.c, solver.a, strict=True):
+        # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i apart,
+        # XLA computed each stage twice, in two fusions (Van der Pol at N = 10,000: 0.95x).
+        last = len(solver.c) - 1
+        for i, (c_i, a_i) in enumerate(zip(solver.c, solver.a, strict=True)):
             z = y + weighted_sum(a_i, ks, y)
-            f_last = self.flows(st.mode, t + c_i * hh, z, args)
-            ks.append(f_last * hh)
+            if i < last:
+                ks.append(self.flows(st.mode, t + c_i * hh, z, args, scale=hh))
+            else:
+                f_last = self.flows(st.mode, t + c_i * hh, z, args)
+                ks.append(f_last * hh)
         y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
         y_err = weighted_sum(solver.b_err, ks, y)
         # The I controller of `FastIController`, per lane.
@@ -769,6 +808,8 @@ class BatchedLoop:
         y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
         scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
         e = sg(jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0]))
+        # Read by many fusions below, each of which would recompute the error norm.
+        e, finite_y1 = _materialize((e, finite_y1), jnp.any(stepping))
         keep = (e < 1) & finite_y1
         factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
                              jnp.where(keep, c.factormax, c.safety)))
@@ -792,16 +833,17 @@ class BatchedLoop:
                 times.append(sg(t) if i == 0 else sg(t_next) if i == last else sg(t) + hs * float(th))
 
             def guard_jvp(m, tt, yy, yd, a):
-                return jax.jvp(lambda t_, y_: kern.guards(m, t_, y_, sg(a)), (tt, yy),
+                return jax.jvp(lambda t_, y_: kern.to_slots(m, kern.guards(m, t_, y_, sg(a))), (tt, yy),
                                (jnp.ones_like(tt), yd))
 
             pairs = [self.lane_map(guard_jvp, st.mode, tt, yy, yd, args=args)
                      for tt, yy, yd in zip(times, samples, slopes, strict=True)]
-            G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (W, N) each
+            G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (S, N) each
             # Zeros where no lane steps: every use below is masked by `stepping`.
             some_step = jnp.any(stepping)
             G_e, D_e = _materialize((G_e, D_e), some_step)
             finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
+            finite_G = _materialize(finite_G, some_step)  # else re-read from every sample by each use
             ok = keep & finite_G & stepping
             has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
             has = has & ok
@@ -824,8 +866,8 @@ class BatchedLoop:
                 # block of those lanes.
                 new_all, rec, t_end = carry
                 out = self.lane_map(self._event_lane,
-                                    *self.take((t, t_next, y, y1, jnp.stack(ks), st.mode, has, j, suspect,
-                                                i_d, x0_d, jnp.stack(times), dt_new, st.t1), idx),
+                                    *self.take((t, t_next, y, y1, ks, st.mode, has, j, suspect,
+                                                i_d, x0_d, times, dt_new, st.t1), idx),
                                     args=self.lane_args(st, idx))
                 # Each output feeds several fields' updates; computed once (`_materialize`).
                 out = _materialize(out, jnp.any(need))
@@ -881,8 +923,8 @@ class BatchedLoop:
         # A non-finite step that cannot be shrunk any further, or non-finite guards on an
         # accepted step, stop the lane at the step's start, where everything was finite.
         stuck = ~finite_y1 & (sg(hh) <= 64 * self.eps * jnp.maximum(jnp.abs(sg(t)), sg(hh)))
-        new = _stop(new, stepping & (stuck | (keep & ~finite_G)), Status.NONFINITE)
-        new = _stop(new, stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS)
+        new = _stop_first(new, (stepping & (stuck | (keep & ~finite_G)), Status.NONFINITE),
+                          (stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS))
         return new, rec
 
     # ------------------------------------------------------------------ saved states

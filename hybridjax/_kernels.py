@@ -77,6 +77,10 @@ class Kernels:
         self.watch = watch
         self.num_watch = len(watch)
         self.watch_sources = jnp.asarray([w[0] for w in watch], dtype=jnp.int32)
+        # Slot s of mode m: its s-th own watched function (`to_slots`).
+        self.mode_watch = [[w for w, (src, _) in enumerate(watch) if src == m]
+                           for m in range(system.num_modes)]
+        self.num_slots = max(map(len, self.mode_watch), default=0)
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -86,6 +90,14 @@ class Kernels:
     def flow(self, mode, t, y, args) -> jax.Array:
         """F_mode(t, y) on the padded state (zeros beyond the mode's dim)."""
         branches = [self.mode_flow(i) for i in range(self.system.num_modes)]
+        return dispatch(mode, branches, t, y, args)
+
+    def flow_component(self, mode, t, y, args, i: int) -> jax.Array:
+        """Component i of `flow`, each mode's branch cut to it before the modes' selection (under
+        `jax.vmap` the selection is elementwise; selecting whole vectors and then slicing left
+        XLA a lanes-first (N, n) intermediate that it transposed at every stage)."""
+        branches = [lambda t, y, args, b=b: self.mode_flow(b)(t, y, args)[i]
+                    for b in range(self.system.num_modes)]
         return dispatch(mode, branches, t, y, args)
 
     def _guard_fn(self, k: int) -> Callable:
@@ -116,6 +128,28 @@ class Kernels:
             values.append(fn(tt, yy, aa).astype(y.dtype))
         g = jnp.stack(values)
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
+
+    def to_slots(self, mode, values, fill=1.0) -> jax.Array:
+        """(num_slots,): the watched `values` (K + W,) of `mode`'s own functions, in order, padded
+        with `fill`. A mode watches only its own guards and domain components (the others read
+        +1), so the engine that samples them at every step carries max_I (own of mode I) slots,
+        not all K + W (Van der Pol with relay: 1 against 2, the thermostat: 4 against 8)."""
+        out = []
+        for s in range(self.num_slots):
+            v = jnp.full((), fill, values.dtype)
+            for m, own in enumerate(self.mode_watch):
+                if s < len(own):
+                    v = jnp.where(mode == m, values[own[s]], v)
+            out.append(v)
+        return jnp.stack(out) if out else jnp.zeros((0,), values.dtype)
+
+    def from_slots(self, mode, slots, fill) -> jax.Array:
+        """(K + W,): `to_slots` undone; the functions not of `mode` read `fill`."""
+        out = []
+        for w, (src, _) in enumerate(self.watch):
+            v = slots[self.mode_watch[src].index(w)]
+            out.append(jnp.where(mode == src, v, jnp.full((), fill, slots.dtype)))
+        return jnp.stack(out) if out else jnp.zeros((0,), slots.dtype)
 
     def reset(self, k, t, y, args) -> jax.Array:
         """R_k(t, y) on the padded state, transition index `k` traced."""
