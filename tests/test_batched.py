@@ -24,6 +24,7 @@ from hybridjax._batched import (
     first_lanes,
     running_count,
 )
+from hybridjax._kernels import Kernels
 from hybridjax._simulate_batch import carries_derivatives
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
@@ -395,3 +396,21 @@ def test_block_compaction_equals_nonzero(frac):
         for skip in (1, 37, 500):
             np.testing.assert_array_equal(first_lanes(mask, size, count, skip=jnp.int32(skip)),
                                           lanes[skip:skip + size])
+
+
+def test_watched_function_slots_hold_each_modes_own_in_order():
+    # The batched engine samples guards by slot: slot s of mode m is m's s-th own watched
+    # function (guards by transition index, then domain components). The thermostat watches
+    # 8 functions (4 guards, 4 domain components: off has 2 + 2, heat and cool 1 + 1 each).
+    kern = Kernels(THERMO, THERMO_ARGS)
+    assert kern.num_watch == 8 and kern.num_slots == 4
+    values = jnp.arange(1.0, 9.0)  # watched function w reads w + 1
+    expected = {0: [], 1: [], 2: []}
+    for w, (src, _) in enumerate(kern.watch):
+        expected[src].append(w + 1.0)
+    for mode, own in expected.items():
+        slots = kern.to_slots(jnp.int32(mode), values, fill=-7.0)
+        np.testing.assert_array_equal(slots, own + [-7.0] * (4 - len(own)))
+        back = kern.from_slots(jnp.int32(mode), slots, 0.0)
+        np.testing.assert_array_equal(back, [v if kern.watch[i][0] == mode else 0.0
+                                             for i, v in enumerate(np.asarray(values))])
