@@ -820,30 +820,39 @@ class BatchedLoop:
             (jnp.where(stepping, dt_new, st.h), st.num_steps + stepping.astype(jnp.int32),
              st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
         if W:
-            ks_sg = [sg(k) for k in ks]
-            y_sg, y1_sg, hs = sg(y), sg(y1), sg(hh)
-            safe_h = jnp.maximum(hs, jnp.finfo(self.dtype).tiny)
-            samples, slopes, times = [], [], []
-            last = len(self.thetas) - 1
-            for i, th in enumerate(self.thetas):
-                (va, vb, vc), (da, db, dc) = self.w_value[i], self.w_slope[i]
-                samples.append(y_sg if i == 0 else y1_sg if i == last else
-                               va * y_sg + vb * y1_sg + weighted_sum(vc, ks_sg, y_sg))
-                slopes.append((da * y_sg + db * y1_sg + weighted_sum(dc, ks_sg, y_sg)) / safe_h)
-                times.append(sg(t) if i == 0 else sg(t_next) if i == last else sg(t) + hs * float(th))
+            hs = sg(hh)
+            times = [sg(t) if i == 0 else sg(t_next) if i == len(self.thetas) - 1 else sg(t) + hs * float(th)
+                     for i, th in enumerate(self.thetas)]
 
-            def guard_jvp(m, tt, yy, yd, a):
-                return jax.jvp(lambda t_, y_: kern.to_slots(m, kern.guards(m, t_, y_, sg(a))), (tt, yy),
-                               (jnp.ones_like(tt), yd))
+            def guard_samples(ops):
+                y_sg, y1_sg, ks_sg, hs, times, mode, args = ops
+                safe_h = jnp.maximum(hs, jnp.finfo(self.dtype).tiny)
+                samples, slopes = [], []
+                last = len(self.thetas) - 1
+                for i in range(len(self.thetas)):
+                    (va, vb, vc), (da, db, dc) = self.w_value[i], self.w_slope[i]
+                    samples.append(y_sg if i == 0 else y1_sg if i == last else
+                                   va * y_sg + vb * y1_sg + weighted_sum(vc, ks_sg, y_sg))
+                    slopes.append((da * y_sg + db * y1_sg + weighted_sum(dc, ks_sg, y_sg)) / safe_h)
 
-            pairs = [self.lane_map(guard_jvp, st.mode, tt, yy, yd, args=args)
-                     for tt, yy, yd in zip(times, samples, slopes, strict=True)]
-            G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (S, N) each
-            # Zeros where no lane steps: every use below is masked by `stepping`.
+                def guard_jvp(m, tt, yy, yd, a):
+                    return jax.jvp(lambda t_, y_: kern.to_slots(m, kern.guards(m, t_, y_, sg(a))), (tt, yy),
+                                   (jnp.ones_like(tt), yd))
+
+                pairs = [self.lane_map(guard_jvp, mode, tt, yy, yd, args=args)
+                         for tt, yy, yd in zip(times, samples, slopes, strict=True)]
+                G_e, D_e = [p[0] for p in pairs], [p[1] for p in pairs]  # (S, N) each
+                finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
+                return G_e, D_e, finite_G
+
+            # Computed inside a conditional taken when some lane steps (else zeros: every use
+            # below is masked by `stepping`), so that XLA:CPU writes each value once, where
+            # its many readers find it (see `_materialize`, which copies them instead).
             some_step = jnp.any(stepping)
-            G_e, D_e = _materialize((G_e, D_e), some_step)
-            finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
-            finite_G = _materialize(finite_G, some_step)  # else re-read from every sample by each use
+            ops = (sg(y), sg(y1), [sg(k) for k in ks], hs, times, st.mode, sg(args))
+            G_e, D_e, finite_G = lax.cond(
+                some_step, guard_samples,
+                lambda ops: jtu.tree_map(jnp.zeros_like, jax.eval_shape(guard_samples, ops)), ops)
             ok = keep & finite_G & stepping
             has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
             has = has & ok
