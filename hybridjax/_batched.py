@@ -237,6 +237,13 @@ def _materialize(tree, pred):
     return lax.cond(pred, lambda x: x, lambda x: jtu.tree_map(jnp.zeros_like, x), tree)
 
 
+def _computed_once(fn, operands, pred):
+    """`fn(operands)` computed inside a conditional taken where `pred` holds (zeros where not;
+    `pred` as `_materialize`'s): its outputs are written once, by the fusions that compute them,
+    where `_materialize` copies values computed outside (one copy per array per iteration)."""
+    return lax.cond(pred, fn, lambda ops: jtu.tree_map(jnp.zeros_like, jax.eval_shape(fn, ops)), operands)
+
+
 def _dip_interval(V0, V1, D0, D1, h):
     """A dip test on one sample interval of length h: the cubic Hermite model of g from values
     V and slopes D at its ends. Returns (crossing, dip candidate, u): u the offset of the
@@ -801,15 +808,19 @@ class BatchedLoop:
                 f_last = self.flows(st.mode, t + c_i * hh, z, args)
                 ks.append(f_last * hh)
         y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
-        y_err = weighted_sum(solver.b_err, ks, y)
         # The I controller of `FastIController`, per lane.
         order = c._get_error_order(self.error_order)
-        finite_y1 = _rows_all(jnp.isfinite(y1))
-        y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
-        scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
-        e = sg(jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0]))
-        # Read by many fusions below, each of which would recompute the error norm.
-        e, finite_y1 = _materialize((e, finite_y1), jnp.any(stepping))
+
+        def error_norm(ops):
+            y, y1, ks = ops
+            y_err = weighted_sum(solver.b_err, ks, y)
+            y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
+            scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
+            e = jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0])
+            return e, _rows_all(jnp.isfinite(y1))
+
+        # Read by many fusions below, each of which would recompute it from the stages.
+        e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
         keep = (e < 1) & finite_y1
         factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
                              jnp.where(keep, c.factormax, c.safety)))
@@ -845,14 +856,10 @@ class BatchedLoop:
                 finite_G = _rows_all(jnp.stack([_rows_all(jnp.isfinite(g)) for g in G_e[1:]]))
                 return G_e, D_e, finite_G
 
-            # Computed inside a conditional taken when some lane steps (else zeros: every use
-            # below is masked by `stepping`), so that XLA:CPU writes each value once, where
-            # its many readers find it (see `_materialize`, which copies them instead).
+            # Zeros where no lane steps: every use below is masked by `stepping`.
             some_step = jnp.any(stepping)
             ops = (sg(y), sg(y1), [sg(k) for k in ks], hs, times, st.mode, sg(args))
-            G_e, D_e, finite_G = lax.cond(
-                some_step, guard_samples,
-                lambda ops: jtu.tree_map(jnp.zeros_like, jax.eval_shape(guard_samples, ops)), ops)
+            G_e, D_e, finite_G = _computed_once(guard_samples, ops, some_step)
             ok = keep & finite_G & stepping
             has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
             has = has & ok
