@@ -237,9 +237,9 @@ under `jax.vmap`."""),
             continue
         x = b[key]
         print(f"  {key:<19} {x['exec_per_s']:10.0f} executions/s  error {x['error']:.0e}  -> hybridjax {x['ratio']:.2g}x")"""),
-        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and 7-19x its own
-per-execution engine under `vmap`. Against the plain diffrax loop it is about 5x on the ball and 6x on Van der Pol
-at 10,000 executions on two cores, 2-3x on one (`one_device`), and ahead on the thermostat only with both cores.
+        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and 7-20x its own
+per-execution engine under `vmap`. Against the plain diffrax loop it is about 5x on the ball and 6-7x on Van der
+Pol at 10,000 executions on two cores, 2-3x on one (`one_device`), and ahead on the thermostat only with both cores.
 The plain loop does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
 at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short
 epochs, grazing, resets into guards, Zeno), see notebook 03 and the README's numerical limits. `bare_loop` is the
