@@ -12,6 +12,7 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
+from ._eager import compiled_when_eager
 from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
 from ._loop import Loop
 from ._solution import Solution
@@ -187,6 +188,7 @@ def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, 
     return dtype, kind, checkpoints, solver, controller, event_tol
 
 
+@compiled_when_eager(check_time_span)
 def simulate(
     system: HybridSystem,
     x0: Float[ArrayLike, " dim"],
@@ -225,6 +227,13 @@ def simulate(
     Pure in its array arguments: `jax.jit`, `jax.vmap` over `x0`, `mode0`, `args`, `t0`,
     `t1`; `jax.grad`/`jax.jacrev` (default `adjoint`) and `jax.jacfwd`
     (`adjoint=diffrax.ForwardMode()`) with respect to `x0`, `args`, `t0`, `t1`.
+
+    Called outside any transformation (as in a notebook), the call is compiled once and the
+    program kept (`eqx.filter_jit`): a later call with arrays of the same shapes and dtypes
+    and equal other arguments runs it at once. Python numbers (in `args`, `t0`, `t1`, the
+    options) are constants of the program, so a changed one compiles a new program: pass a
+    parameter you vary as an array (`jnp.asarray(0.8)`). Inside `jax.jit`, `jax.vmap` or a
+    derivative the call is traced with its caller, as any JAX function.
 
     **Arguments:**
 

@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
 from ._batched import BatchedLoop, as_status
+from ._eager import compiled_when_eager
 from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
 from ._simulate import _checked_options, _initial_state, _save_times, simulate
 from ._solution import Solution
@@ -69,6 +70,7 @@ def _check_block(block) -> None:
                      f"of block sizes with small < large (large None: the default); got {block!r}.")
 
 
+@compiled_when_eager(check_time_span)
 def simulate_batch(
     system: HybridSystem,
     x0: Float[ArrayLike, "batch dim"],
@@ -161,6 +163,8 @@ def simulate_batch(
 
     Differentiable like `simulate` (`jax.grad`, `jax.jacrev` with the default `adjoint`,
     `jax.jacfwd` with `diffrax.ForwardMode()`), with respect to `x0`, `args`, `t0`, `t1`.
+    Called outside any transformation, compiled once and reused like `simulate` (Python
+    numbers are constants of the program; pass a parameter you vary as an array).
 
     !!! Example
 

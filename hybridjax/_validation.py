@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._eager import take_time_span_check
+
 
 class DefinitionError(ValueError):
     """A mode or transition of a `HybridSystem` is ill-defined (message names the culprit)."""
@@ -20,8 +22,11 @@ def check_time_span(t0, t1, where: str, given: tuple):
     """`t1` unchanged if t1 >= t0 (elementwise). `given`: (t0, t1) as the caller passed them;
     known values are checked here, at the call (`ValueError`), traced ones inside the compiled
     run (`eqx.error_if`). The check at the call keeps host callbacks out of the compiled
-    program: JAX's persistent compilation cache does not store programs that have them."""
+    program: JAX's persistent compilation cache does not store programs that have them.
+    Inside a call compiled by `compiled_when_eager` the check was made at its call."""
     msg = f"{where}: t1 must be >= t0."
+    if take_time_span_check():
+        return t1
     try:
         bad = bool(np.any(np.asarray(given[1]) < np.asarray(given[0])))
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):

@@ -1,0 +1,74 @@
+"""Calls outside `jax.jit` (as in a notebook): each call's wall time, before and now.
+
+`simulate` and `simulate_batch` called directly are compiled once per configuration and
+reused (`hybridjax._eager`); the plain call they wrap (`hj.simulate.__wrapped__`, what every
+direct call did before) traced and compiled its loops on every call. Measured in one process,
+on the bouncing ball (e = 0.8, T = 2.5, Tsit5, rtol = atol = 1e-9, float64): `simulate` on one
+execution and `simulate_batch` on N = 1,000, four calls each way: three with new initial
+states (same shapes), then one with a changed Python number in `args` (g = 9.0), which is
+part of the program and compiles a new one. The process's one-off costs (JAX's first trace,
+the dense-output weights) are paid by a warm-up run of another problem first. Each result is
+checked against the closed form (largest final-state error).
+
+    python benchmarks/eager_calls.py     # prints a table, writes results/eager_calls.json
+"""
+
+import time
+
+import diffrax
+import jax
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+from _common import machine_info, write_json  # noqa: E402
+
+import hybridjax as hj  # noqa: E402
+
+CTRL = diffrax.PIDController(rtol=1e-9, atol=1e-9)
+BALL = hj.examples.bouncing_ball()
+T1 = 2.5
+
+
+def states(rng, n):
+    return np.stack([rng.uniform(0.5, 1.5, n), rng.uniform(-1, 1, n)], 1)
+
+
+def error(final, x0, g):
+    ref = np.array([hj.examples.bouncing_ball_closed_form(h, v, g, 0.8, T1)["final_state"] for h, v in x0])
+    return float(np.max(np.abs(np.atleast_2d(np.asarray(final)) - ref)))
+
+
+def calls(fn, batch: bool, seed: int) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for k, g in enumerate((9.8, 9.8, 9.8, 9.0)):
+        x0 = states(rng, 1000 if batch else 1)
+        arg = x0 if batch else x0[0]
+        t = time.perf_counter()
+        sol = fn(BALL, arg, "flight", 0.0, T1, {"g": g, "e": 0.8}, stepsize_controller=CTRL, max_epochs=32)
+        final = jax.block_until_ready(sol.final_state)
+        out.append(dict(call=k + 1, g=g, wall_s=time.perf_counter() - t, max_error=error(final, x0, g)))
+    return out
+
+
+def main():
+    # Warm-up: the process's first trace and compile, on another problem.
+    jax.block_until_ready(hj.simulate(hj.examples.thermostat(), np.array([20.0]), "off", 0.0, 5.0,
+                                      dict(a=0.1, T_amb=30.0, P_heat=2.5, P_cool=2.0, s=20.0)).final_state)
+    rows = {}
+    for name, fn, batch in (("simulate", hj.simulate, False), ("simulate_batch (N = 1,000)", hj.simulate_batch, True)):
+        rows[name] = {"plain call (before)": calls(fn.__wrapped__, batch, 0),
+                      "compiled once (now)": calls(fn, batch, 1)}
+    print(f"{'function':28s} {'way':22s} " + " ".join(f"{'call ' + str(k):>9s}" for k in (1, 2, 3))
+          + f" {'call 4 (g)':>10s} {'max error':>9s}")
+    for name, ways in rows.items():
+        for way, cs in ways.items():
+            print(f"{name:28s} {way:22s} " + " ".join(f"{c['wall_s']:8.3f}s" for c in cs[:3])
+                  + f" {cs[3]['wall_s']:9.3f}s {max(c['max_error'] for c in cs):9.1e}")
+    path = write_json("eager_calls", dict(machine=machine_info(), rows=rows))
+    print("wrote", path)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""Calls outside any transformation: compiled once per configuration and reused
+(`hybridjax._eager`), with the same results and the same errors as before.
+
+A flow that counts its own calls tells whether a call traced the problem again (flows run
+only while a program is traced); every result is checked against the ball's closed form."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+
+from helpers import TIGHT, ball_reference
+
+
+def counting_ball():
+    """The bouncing ball, with a flow that records each time it is traced."""
+    calls = []
+
+    def flow(t, x, p):
+        calls.append(1)
+        return jnp.array([x[1], -p["g"]])
+
+    flight = hj.Mode("flight", flow, dim=2)
+    bounce = hj.Transition("flight", "flight", guard=lambda t, x, p: x[0],
+                           reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]))
+    return hj.HybridSystem([flight], [bounce]), calls
+
+
+def final_states(sol):
+    return np.atleast_2d(np.asarray(sol.final_state))
+
+
+def expected(x0s, g, e, t1):
+    return np.array([ball_reference(h, v, g, e, t1)["final_state"] for h, v in np.atleast_2d(x0s)])
+
+
+def run(name, system, x0, args, t1=1.5):
+    fn = hj.simulate if name == "simulate" else hj.simulate_batch
+    return fn(system, x0, "flight", 0.0, t1, args, stepsize_controller=TIGHT, max_epochs=16)
+
+
+STATES = {"simulate": (np.array([1.0, 0.0]), np.array([0.7, 0.4])),
+          "simulate_batch": (np.array([[1.0, 0.0], [0.6, -0.5]]), np.array([[0.7, 0.4], [1.2, 0.9]]))}
+
+
+@pytest.mark.parametrize("name", STATES)
+def test_a_second_call_reuses_the_compiled_program(name):
+    system, calls = counting_ball()
+    args = {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+    first, second = STATES[name]
+    sol = run(name, system, first, args)
+    traced = len(calls)
+    assert traced > 0
+    np.testing.assert_allclose(final_states(sol), expected(first, 9.8, 0.8, 1.5), rtol=1e-7, atol=1e-7)
+    # New initial states and new parameter values, same shapes: no new trace.
+    sol = run(name, system, second, {"g": jnp.asarray(9.0), "e": jnp.asarray(0.6)})
+    assert len(calls) == traced
+    np.testing.assert_allclose(final_states(sol), expected(second, 9.0, 0.6, 1.5), rtol=1e-7, atol=1e-7)
+    assert np.all(np.asarray(sol.status == hj.Status.T1_REACHED))
+
+
+def test_a_changed_python_number_is_compiled_anew_not_reused():
+    # Python numbers are part of the program (constants): a changed one must not reuse it.
+    system, calls = counting_ball()
+    x0 = STATES["simulate"][0]
+    sols = {e: run("simulate", system, x0, {"g": 9.8, "e": e}) for e in (0.8, 0.6)}
+    for e, sol in sols.items():
+        np.testing.assert_allclose(final_states(sol), expected(x0, 9.8, e, 1.5), rtol=1e-7, atol=1e-7)
+    traced = len(calls)
+    sol = run("simulate", system, x0, {"g": 9.8, "e": np.float64(0.6)}, t1=1.2)  # a NumPy scalar too
+    np.testing.assert_allclose(final_states(sol), expected(x0, 9.8, 0.6, 1.2), rtol=1e-7, atol=1e-7)
+    assert len(calls) > traced
+
+
+def test_a_list_initial_state_is_an_input_not_a_constant():
+    system, calls = counting_ball()
+    args = {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+    run("simulate", system, [1.0, 0.0], args)
+    traced = len(calls)
+    sol = run("simulate", system, [0.7, 0.4], args)
+    assert len(calls) == traced
+    np.testing.assert_allclose(final_states(sol), expected([0.7, 0.4], 9.8, 0.8, 1.5), rtol=1e-7, atol=1e-7)
+
+
+def test_an_input_needed_concrete_falls_back_to_the_plain_call():
+    # simulate_batch reads a scalar mode0 as a Python integer to pad a short x0 (a wall
+    # particle of 1 component in a system of 2): as a traced NumPy array it cannot, and the
+    # call is made as before, with the same result.
+    sys2 = hj.HybridSystem([hj.Mode("short", lambda t, x, p: jnp.ones_like(x), dim=1),
+                            hj.Mode("long", lambda t, x, p: jnp.zeros_like(x), dim=2)], [])
+    sol = hj.simulate_batch(sys2, np.array([[0.5], [1.0]]), np.array(0), 0.0, 2.0)
+    np.testing.assert_allclose(np.asarray(sol.final_state), [[2.5, 0.0], [3.0, 0.0]], rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", STATES)
+def test_t1_before_t0_as_arrays_is_still_refused_at_the_call(name):
+    system, _ = counting_ball()
+    fn = hj.simulate if name == "simulate" else hj.simulate_batch
+    with pytest.raises(ValueError, match=f"{name}: t1 must be >= t0"):
+        fn(system, STATES[name][0], "flight", np.asarray(1.0), jnp.asarray(0.5), {"g": 9.8, "e": 0.8})
+
+
+def test_calls_inside_a_transformation_compile_with_their_caller():
+    # Under jax.grad the call is traced with the gradient; the derivative of the final height
+    # with respect to h0 before the first impact is 1 (free fall).
+    system, _ = counting_ball()
+
+    def height(h0):
+        return hj.simulate(system, jnp.array([h0, 0.0]), "flight", 0.0, 0.2, {"g": 9.8, "e": 0.8},
+                           stepsize_controller=TIGHT, max_epochs=4).final_state[0]
+
+    assert abs(float(jax.grad(height)(1.0)) - 1.0) < 1e-9
