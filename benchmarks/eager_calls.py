@@ -8,7 +8,9 @@ execution and `simulate_batch` on N = 1,000, four calls each way: three with new
 states (same shapes), then one with a changed Python number in `args` (g = 9.0), which is
 part of the program and compiles a new one. The process's one-off costs (JAX's first trace,
 the dense-output weights) are paid by a warm-up run of another problem first. Each result is
-checked against the closed form (largest final-state error).
+checked against the closed form (largest final-state error). Then `monte_carlo` (20,000 balls
+with v0 ~ U(-1, 1), two chunks, three runs with new keys), with its kept chunk programs dropped
+before each run (what every run did before) and kept (now).
 
     python benchmarks/eager_calls.py     # prints a table, writes results/eager_calls.json
 """
@@ -52,6 +54,34 @@ def calls(fn, batch: bool, seed: int) -> list[dict]:
     return out
 
 
+def sampler(key, m):
+    k1, k2 = jax.random.split(key)
+    h = jax.random.uniform(k1, (m,), minval=0.5, maxval=1.5)
+    v = jax.random.uniform(k2, (m,), minval=-1.0, maxval=1.0)
+    return jax.numpy.stack([h, v], 1), {"g": jax.numpy.full(m, 9.8), "e": jax.numpy.full(m, 0.8)}
+
+
+def monte_carlo_calls(keep_programs: bool) -> list[dict]:
+    """Three `monte_carlo` runs of 20,000 balls (chunks of 10,000), new keys; without
+    `keep_programs` the kept programs are dropped before each (what every call did before)."""
+    from hybridjax import _montecarlo
+
+    out = []
+    _montecarlo._COMPILED.clear()
+    for k in range(3):
+        if not keep_programs:
+            _montecarlo._COMPILED.clear()
+        t = time.perf_counter()
+        res = hj.monte_carlo(BALL, sampler, 20_000, mode0="flight", t1=T1, key=jax.random.PRNGKey(k), chunk_size=10_000, keep="all", progress=False,
+                             stepsize_controller=CTRL, max_epochs=32)
+        wall = time.perf_counter() - t
+        x0 = np.asarray(jax.vmap(lambda c: sampler(jax.random.fold_in(jax.random.PRNGKey(k), c), 10_000)[0])(
+            jax.numpy.arange(2))).reshape(-1, 2)
+        out.append(dict(call=k + 1, wall_s=wall, compile_s=res.compile_s,
+                        max_error=error(res.per_execution["final_state"], x0, 9.8)))
+    return out
+
+
 def main():
     # Warm-up: the process's first trace and compile, on another problem.
     jax.block_until_ready(hj.simulate(hj.examples.thermostat(), np.array([20.0]), "off", 0.0, 5.0,
@@ -60,12 +90,15 @@ def main():
     for name, fn, batch in (("simulate", hj.simulate, False), ("simulate_batch (N = 1,000)", hj.simulate_batch, True)):
         rows[name] = {"plain call (before)": calls(fn.__wrapped__, batch, 0),
                       "compiled once (now)": calls(fn, batch, 1)}
-    print(f"{'function':28s} {'way':22s} " + " ".join(f"{'call ' + str(k):>9s}" for k in (1, 2, 3))
+    rows["monte_carlo (20,000 in 2 chunks)"] = {"plain call (before)": monte_carlo_calls(False),
+                                                "compiled once (now)": monte_carlo_calls(True)}
+    print(f"{'function':34s} {'way':22s} " + " ".join(f"{'call ' + str(k):>9s}" for k in (1, 2, 3))
           + f" {'call 4 (g)':>10s} {'max error':>9s}")
     for name, ways in rows.items():
         for way, cs in ways.items():
-            print(f"{name:28s} {way:22s} " + " ".join(f"{c['wall_s']:8.3f}s" for c in cs[:3])
-                  + f" {cs[3]['wall_s']:9.3f}s {max(c['max_error'] for c in cs):9.1e}")
+            print(f"{name:34s} {way:22s} " + " ".join(f"{c['wall_s']:8.3f}s" for c in cs[:3])
+                  + (f" {cs[3]['wall_s']:9.3f}s" if len(cs) > 3 else f"{'-':>11s}")
+                  + f" {max(c['max_error'] for c in cs):9.1e}")
     path = write_json("eager_calls", dict(machine=machine_info(), rows=rows))
     print("wrote", path)
 

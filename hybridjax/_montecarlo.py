@@ -18,6 +18,7 @@ run, the same on every process).
 import math
 import sys
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -77,7 +78,8 @@ class MonteCarloResult(NamedTuple):
     - `status_fractions`: {name: (fraction, (low, high))} with 95% Wilson intervals.
     - `zeno_time`, `num_events`: running statistics (n, mean, std, min, max).
     - `event_histogram`: counts of executions by number of events (index = events).
-    - `run_s`, `compile_s`, `executions_per_s`, `devices`, `chunks`.
+    - `run_s`, `compile_s` (0 where an earlier call's compiled program was reused),
+      `executions_per_s`, `devices`, `chunks`.
     """
 
     n: int
@@ -130,6 +132,34 @@ class _Progress:
         sys.stderr.flush()
 
 
+# Compiled chunk programs of recent calls, by configuration (`_program_key`): a notebook that
+# runs `monte_carlo` again on the same problem (another n, sampler or key) does not compile again.
+_COMPILED: "OrderedDict[Any, Any]" = OrderedDict()
+_COMPILED_MAX = 8
+
+
+def _program_key(config: tuple, inputs) -> Any:
+    """A hashable key of everything the chunk program depends on: the configuration (system,
+    mode, t0, t1, devices, `simulate_batch` options; functions by identity, numbers by value)
+    and the chunk's input shapes, dtypes and shardings. None where some part is not hashable
+    (arrays in the system or options): such calls compile as before."""
+    leaves, treedef = jax.tree_util.tree_flatten(inputs)
+    key = (config, treedef, tuple((leaf.shape, leaf.dtype, leaf.sharding) for leaf in leaves))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def _remember(key, compiled) -> None:
+    if key is None:
+        return
+    _COMPILED[key] = compiled
+    while len(_COMPILED) > _COMPILED_MAX:
+        _COMPILED.popitem(last=False)
+
+
 def monte_carlo(
     system: HybridSystem,
     sampler: Callable[[jax.Array, int], tuple[Any, Any]] | None = None,
@@ -159,6 +189,12 @@ def monte_carlo(
     statistics, timings. `simulate_kwargs` go to `simulate_batch` (solver, tolerances,
     max_epochs, Zeno options, `engine`...): each chunk runs on the batched engine where it
     applies (explicit RK solvers), else as `jax.vmap(simulate)`.
+
+    The compiled chunk program is kept (the last 8, by configuration: system and options by
+    equality, their functions by identity, chunk shapes, dtypes and shardings), so running
+    `monte_carlo` again on the same problem with another `n`, `sampler` or `key` does not
+    compile again (`compile_s` 0). Python numbers in `t0`, `t1` and the options are part of
+    the program: a changed one compiles a new one.
     """
     if keep not in ("all", "summary"):
         raise ValueError(f"keep must be 'all' or 'summary', got {keep!r}.")
@@ -209,10 +245,16 @@ def monte_carlo(
         xs = jax.device_put(xs, batch_sharding)
         a = jax.device_put(a, batch_sharding) if a is not None else None
         if compiled is None:
-            # Compile ahead of time, once (every chunk has the same shapes and shardings).
+            # Compile ahead of time, once (every chunk has the same shapes and shardings), or
+            # take the program an earlier call with the same configuration compiled.
             tc = time.perf_counter()
-            compiled = run_chunk.lower(xs, a).compile()
-            compile_s = time.perf_counter() - tc
+            cache_key = _program_key((system, mode_index, t0, t1, tuple(devices),
+                                      tuple(sorted(simulate_kwargs.items()))), (xs, a))
+            compiled = _COMPILED.get(cache_key) if cache_key is not None else None
+            if compiled is None:
+                compiled = run_chunk.lower(xs, a).compile()
+                compile_s = time.perf_counter() - tc
+                _remember(cache_key, compiled)
             t_start = time.perf_counter()
         out = compiled(xs, a)
         host = {k: np.asarray(jax.device_get(v))[:m] for k, v in out.items()}

@@ -144,6 +144,13 @@ def test_monte_carlo_matches_closed_form_and_direct_vmap():
     frac, (lo, hi) = res.status_fractions["ZENO"]
     assert frac == k / 96 and (lo, hi) == hj.wilson_interval(k, 96)
     assert res.num_events["n"] == 96 and int(np.sum(res.event_histogram)) == 96
+    # Another horizon is another program (t1 is a constant of it), not the one kept above.
+    res2 = hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=2.0, chunk_size=40,
+                          progress=False, max_epochs=32)
+    zeno2 = res2.per_execution["status"] == hj.STATUS_NAMES.index("ZENO")
+    clear2 = np.abs(t_inf - 2.0) > 0.2
+    assert res2.compile_s > 0 and 0 < np.sum(zeno2[clear2]) < np.sum(zeno[clear])
+    np.testing.assert_array_equal(zeno2[clear2], (t_inf <= 2.0)[clear2])
 
 
 _SHARDED = r"""
@@ -193,6 +200,8 @@ def test_chunked_arrays_and_sampler_paths_agree():
     b = hj.monte_carlo(BALL, sampler, 48, mode0="flight", t1=4.0, chunk_size=48,
                        progress=False, max_epochs=32, keep="summary")
     assert b.per_execution is None and a.status_counts == b.status_counts
+    # Same configuration and chunk shapes: b ran the program a compiled.
+    assert a.compile_s > 0 and b.compile_s == 0
     assert a.zeno_time["mean"] == pytest.approx(b.zeno_time["mean"], rel=1e-12)
     with pytest.raises(ValueError, match="either a sampler"):
         hj.monte_carlo(BALL, t1=1.0)
