@@ -10,7 +10,9 @@ part of the program and compiles a new one. The process's one-off costs (JAX's f
 the dense-output weights) are paid by a warm-up run of another problem first. Each result is
 checked against the closed form (largest final-state error). Then `monte_carlo` (20,000 balls
 with v0 ~ U(-1, 1), two chunks, three runs with new keys), with its kept chunk programs dropped
-before each run (what every run did before) and kept (now).
+before each run (what every run did before) and kept (now). Then `periodic_orbit` on the
+rimless wheel, three slopes given as arrays (now only: the plain version is gone; the commit
+before this one measured 20-22 s for every call, with `python` on the README's example).
 
     python benchmarks/eager_calls.py     # prints a table, writes results/eager_calls.json
 """
@@ -82,6 +84,22 @@ def monte_carlo_calls(keep_programs: bool) -> list[dict]:
     return out
 
 
+def periodic_orbit_calls() -> list[dict]:
+    """Three `periodic_orbit` calls on the rimless wheel (alpha = 0.3; gamma 0.08, 0.1, 0.06,
+    given as arrays): the first compiles, the others reuse its programs. Error: the nontrivial
+    Floquet multiplier against cos(2 alpha)^2."""
+    wheel, out = hj.examples.rimless_wheel(), []
+    for k, gamma in enumerate((0.08, 0.1, 0.06)):
+        ref = hj.examples.rimless_wheel_closed_form(0.3, gamma)
+        t = time.perf_counter()
+        orbit = hj.periodic_orbit(wheel, 0, ref["state"] * np.array([1.0, 1.1]),
+                                  {"alpha": jax.numpy.asarray(0.3), "gamma": jax.numpy.asarray(gamma)})
+        wall = time.perf_counter() - t
+        out.append(dict(call=k + 1, gamma=gamma, wall_s=wall,
+                        max_error=float(np.min(np.abs(orbit.multipliers_ad - ref["multiplier"])))))
+    return out
+
+
 def main():
     # Warm-up: the process's first trace and compile, on another problem.
     jax.block_until_ready(hj.simulate(hj.examples.thermostat(), np.array([20.0]), "off", 0.0, 5.0,
@@ -92,6 +110,7 @@ def main():
                       "compiled once (now)": calls(fn, batch, 1)}
     rows["monte_carlo (20,000 in 2 chunks)"] = {"plain call (before)": monte_carlo_calls(False),
                                                 "compiled once (now)": monte_carlo_calls(True)}
+    rows["periodic_orbit (rimless wheel)"] = {"compiled once (now)": periodic_orbit_calls()}
     print(f"{'function':34s} {'way':22s} " + " ".join(f"{'call ' + str(k):>9s}" for k in (1, 2, 3))
           + f" {'call 4 (g)':>10s} {'max error':>9s}")
     for name, ways in rows.items():

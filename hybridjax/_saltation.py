@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -110,8 +111,13 @@ class VariationalJacobian(NamedTuple):
     event_times: list
 
 
+@eqx.filter_jit
 def _epoch_stm(system: HybridSystem, mode: int, args, t0, t1, x0, solver, controller):
-    """x(t1) and Phi(t1, t0) for mode's flow: dPhi/dt = D_x F Phi, Phi(t0) = I (diffrax)."""
+    """x(t1) and Phi(t1, t0) for mode's flow: dPhi/dt = D_x F Phi, Phi(t0) = I (diffrax).
+
+    Compiled once per (system, mode, args' non-array values, solver, controller) and reused:
+    t0 and t1 are passed as arrays, so each epoch and each later call runs the same program
+    (built inside each call, the solve was traced and compiled anew for every epoch)."""
     flow = system.modes[mode].flow
 
     def vf(t, y, a):
@@ -167,7 +173,8 @@ def variational_jacobian(
         t_end = float(times[i]) if i < n_events else float(sol.final_time)
         crossed = t_end > t_start
         if crossed:
-            x, phi = _epoch_stm(system, mode, args, t_start, t_end, x, solver, stepsize_controller)
+            x, phi = _epoch_stm(system, mode, args, jnp.asarray(t_start, dtype), jnp.asarray(t_end, dtype),
+                                x, solver, stepsize_controller)
             J = phi @ J
         if i >= n_events:
             break

@@ -3,6 +3,7 @@
 import math
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -100,12 +101,27 @@ def test_variational_chain_of_zero_length_epochs_ceiling():
     np.testing.assert_allclose(var.event_times[0], var.event_times[1])
 
 
+def counting_wheel():
+    """The rimless wheel with a flow that records each time it is traced (not its calls on
+    concrete values: `variational_jacobian` evaluates the flow at each event directly)."""
+    wheel, calls = examples.rimless_wheel(), []
+    flow = wheel.modes[0].flow
+
+    def counted(t, x, p):
+        if isinstance(x, jax.core.Tracer):
+            calls.append(1)
+        return flow(t, x, p)
+
+    return eqx.tree_at(lambda s: s.modes[0].flow, wheel, counted), calls
+
+
 @pytest.mark.slow
 def test_rimless_wheel_periodic_orbit_and_floquet_multipliers():
     alpha, gamma = 0.3, 0.08
     ref = examples.rimless_wheel_closed_form(alpha, gamma)
-    orbit = hj.periodic_orbit(examples.rimless_wheel(), 0, ref["state"] * np.array([1.0, 1.2]),
-                              {"alpha": alpha, "gamma": gamma})
+    wheel, calls = counting_wheel()
+    orbit = hj.periodic_orbit(wheel, 0, ref["state"] * np.array([1.0, 1.2]),
+                              {"alpha": jnp.asarray(alpha), "gamma": jnp.asarray(gamma)})
     np.testing.assert_allclose(orbit.state, ref["state"], rtol=1e-9)
     assert orbit.residual < 1e-10
     # period: time from theta = gamma - alpha to gamma + alpha with omega^2 = w*^2 + 2 (cos(g - a) - cos th)
@@ -118,6 +134,16 @@ def test_rimless_wheel_periodic_orbit_and_floquet_multipliers():
     np.testing.assert_allclose(orbit.monodromy_ad, orbit.monodromy_saltation, rtol=1e-6, atol=1e-8)
     eig_dp = np.sort(np.abs(np.linalg.eigvals(orbit.poincare_jacobian)))
     np.testing.assert_allclose(eig_dp, [0.0, ref["multiplier"]], atol=1e-7)
+    # Another slope, given as arrays like the first: the compiled programs are reused (the
+    # flow is not traced again) and the orbit is the new slope's.
+    traced = len(calls)
+    ref2 = examples.rimless_wheel_closed_form(alpha, 0.1)
+    orbit2 = hj.periodic_orbit(wheel, 0, ref2["state"] * np.array([1.0, 0.9]),
+                               {"alpha": jnp.asarray(alpha), "gamma": jnp.asarray(0.1)})
+    assert len(calls) == traced
+    np.testing.assert_allclose(orbit2.state, ref2["state"], rtol=1e-9)
+    np.testing.assert_allclose(np.sort(orbit2.multipliers_saltation.real), np.sort([1.0, ref2["multiplier"]]),
+                               atol=1e-7)
 
 
 def test_grazing_crossing_is_flagged():
