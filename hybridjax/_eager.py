@@ -15,8 +15,9 @@ process whose limit is 65,530 by default), now each configuration adds one.
 
 Left to the plain call (what happened before): calls inside a transformation (`jax.jit`,
 `jax.grad`, `jax.vmap`, ...), which compile with their caller; arguments with an unhashable
-non-array leaf; and calls whose functions need a concrete value of an array argument (a
-`float(args["k"])` in a flow): tracing them raises, and the call is run as before.
+non-array leaf; and calls that need a concrete value of an array argument (a 0-d NumPy array
+`mode0` of `simulate_batch` with an `x0` to pad, read as a Python integer): tracing them
+raises a concretization error, and the call is run as before.
 """
 
 import contextvars
@@ -35,6 +36,7 @@ _TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", defau
 
 class _Ticket:
     used: bool = False
+
 
 # The errors of code that needs a concrete value where the compiled call gives it a tracer.
 _NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
