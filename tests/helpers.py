@@ -3,6 +3,7 @@
 import functools
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,6 +25,23 @@ def line_system(domain=None, guard=None):
     done = hj.Mode("done", lambda t, x, p: jnp.zeros_like(x), dim=1)
     trs = [] if guard is None else [hj.Transition("m", "done", guard=guard)]
     return hj.HybridSystem([m, done], trs)
+
+
+def with_trace_counter(system):
+    """`system` with every mode's flow recording each call on traced values (not calls on
+    concrete ones, which `variational_jacobian` makes at each event): (system, calls). A run
+    that did not trace the problem again leaves `calls` as it was."""
+    calls = []
+
+    def counted(flow):
+        def f(t, x, p):
+            if isinstance(x, jax.core.Tracer):
+                calls.append(1)
+            return flow(t, x, p)
+        return f
+
+    modes = [eqx.tree_at(lambda m: m.flow, m, counted(m.flow)) for m in system.modes]
+    return eqx.tree_at(lambda s: s.modes, system, tuple(modes)), calls
 
 
 def tree_allclose(a, b, rtol=1e-8, atol=1e-8) -> bool:

@@ -1,8 +1,8 @@
 """Calls outside any transformation: compiled once per configuration and reused
 (`hybridjax._eager`), with the same results and the same errors as before.
 
-A flow that counts its own calls tells whether a call traced the problem again (flows run
-only while a program is traced); every result is checked against the ball's closed form."""
+A flow that counts its traced calls (`helpers.with_trace_counter`) tells whether a call traced
+the problem again; every result is checked against the ball's closed form."""
 
 import jax
 import jax.numpy as jnp
@@ -11,21 +11,12 @@ import pytest
 
 import hybridjax as hj
 
-from helpers import TIGHT, ball_reference
+from helpers import TIGHT, ball_reference, with_trace_counter
 
 
 def counting_ball():
     """The bouncing ball, with a flow that records each time it is traced."""
-    calls = []
-
-    def flow(t, x, p):
-        calls.append(1)
-        return jnp.array([x[1], -p["g"]])
-
-    flight = hj.Mode("flight", flow, dim=2)
-    bounce = hj.Transition("flight", "flight", guard=lambda t, x, p: x[0],
-                           reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]))
-    return hj.HybridSystem([flight], [bounce]), calls
+    return with_trace_counter(hj.examples.bouncing_ball())
 
 
 def final_states(sol):

@@ -3,7 +3,6 @@
 import math
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,7 +12,7 @@ from scipy.integrate import quad
 import hybridjax as hj
 from hybridjax import examples
 
-from helpers import BALL, BALL_ARGS, CEILING, THERMO
+from helpers import BALL, BALL_ARGS, CEILING, THERMO, with_trace_counter
 
 TIGHT = diffrax.PIDController(rtol=1e-11, atol=1e-11)
 FWD = diffrax.ForwardMode()
@@ -101,25 +100,11 @@ def test_variational_chain_of_zero_length_epochs_ceiling():
     np.testing.assert_allclose(var.event_times[0], var.event_times[1])
 
 
-def counting_wheel():
-    """The rimless wheel with a flow that records each time it is traced (not its calls on
-    concrete values: `variational_jacobian` evaluates the flow at each event directly)."""
-    wheel, calls = examples.rimless_wheel(), []
-    flow = wheel.modes[0].flow
-
-    def counted(t, x, p):
-        if isinstance(x, jax.core.Tracer):
-            calls.append(1)
-        return flow(t, x, p)
-
-    return eqx.tree_at(lambda s: s.modes[0].flow, wheel, counted), calls
-
-
 @pytest.mark.slow
 def test_rimless_wheel_periodic_orbit_and_floquet_multipliers():
     alpha, gamma = 0.3, 0.08
     ref = examples.rimless_wheel_closed_form(alpha, gamma)
-    wheel, calls = counting_wheel()
+    wheel, calls = with_trace_counter(examples.rimless_wheel())
     orbit = hj.periodic_orbit(wheel, 0, ref["state"] * np.array([1.0, 1.2]),
                               {"alpha": jnp.asarray(alpha), "gamma": jnp.asarray(gamma)})
     np.testing.assert_allclose(orbit.state, ref["state"], rtol=1e-9)
