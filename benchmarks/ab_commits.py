@@ -10,6 +10,7 @@ step counts, event counts and event times are bitwise identical (else by how muc
 
     python benchmarks/ab_commits.py HEAD                      # working tree against HEAD
     python benchmarks/ab_commits.py e5abe04 --problems ball,vdp --rounds 11
+    python benchmarks/ab_commits.py HEAD --block 156          # both at the same block size
 
 Problems: ball (A, N = 10,000), ballsave (the same with 201 saved states), vdp (B, N = 1,000),
 vdp10k (B, N = 10,000), thermo (C, N = 2,000). Prints one line per problem; writes nothing (a tool for changes, not a result).
@@ -74,6 +75,7 @@ def main():
     ap.add_argument("commit")
     ap.add_argument("--problems", default="ball,thermo,vdp")
     ap.add_argument("--rounds", type=int, default=9)
+    ap.add_argument("--block", type=int, default=None, help="simulate_batch's block for both (default: theirs)")
     opts = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     import hybridjax
@@ -90,7 +92,7 @@ def main():
                 system = getattr(hj.examples, example)()  # built from that version's classes
                 fn = jax.jit(lambda x, hj=hj, system=system: hj.simulate_batch(
                     system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
-                    saveat=np.linspace(0.0, p.t1, saves) if saves else None))
+                    saveat=np.linspace(0.0, p.t1, saves) if saves else None, block=opts.block))
                 t = time.perf_counter()
                 compiled = fn.trace(x0).lower().compile()
                 runs[tag] = (compiled, time.perf_counter() - t, jax.block_until_ready(compiled(x0)))

@@ -2,10 +2,11 @@
 
 `simulate_batch` does the work only some executions need in an iteration (epoch start, event
 location, reset) on blocks of them, pass after pass until every one is done (results do not
-depend on the size). Settings: the default (lanes/16), lanes/4 (the default before the passes,
-when executions beyond the block waited an iteration), lanes/64, the pair (lanes/64, default)
-(both sizes compiled; the small one taken where it holds every execution that needs it) and
-the whole batch. Problems: the bouncing ball (A) and the Van der Pol relay (B) at N = 10,000,
+depend on the size). Settings: the default (lanes/32), lanes/4 (the default before the passes,
+when executions beyond the block waited an iteration), lanes/16 (the default until the passes
+sliced one compaction of the lanes instead of compacting them anew in each pass), lanes/64,
+the pair (lanes/64, default) (both sizes compiled; the small one taken where it holds every
+execution that needs it) and the whole batch. Problems: the bouncing ball (A) and the Van der Pol relay (B) at N = 10,000,
 the thermostat (C) at N = 2,000; Tsit5, rtol = atol = 1e-9, float64. Each setting is compiled
 once (trace + XLA compile time reported), then the settings run in turn, alternating order,
 best of `--rounds` (default 5) each. Error: the largest final-state difference against the
@@ -28,13 +29,13 @@ import hybridjax as hj
 
 jax.config.update("jax_enable_x64", True)
 
-DEFAULT = "default (N/16)"
+DEFAULT = "default (N/32)"
 CASES = {"A: bouncing ball": (ball, 10_000), "B: Van der Pol relay": (vdp_relay, 10_000),
          "C: thermostat": (thermostat, 2_000)}
 
 
 def settings(n: int) -> dict:
-    return {DEFAULT: None, "N/4": n // 4, "N/64": n // 64, "(N/64, N/16)": (n // 64, None), "N": n}
+    return {DEFAULT: None, "N/4": n // 4, "N/16": n // 16, "N/64": n // 64, "(N/64, N/32)": (n // 64, None), "N": n}
 
 
 def main(rounds: int = 5):

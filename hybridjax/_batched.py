@@ -14,7 +14,7 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
 - the work only some lanes need (the epoch-start test with its Lie derivatives and the
   epoch's first step; root and minimum location, the implicit-function event point and the reset)
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into
-  blocks of lanes/16, updated there and scattered back once per changed field, block after
+  blocks of lanes/32, updated there and scattered back once per changed field, block after
   block (a loop of at most lanes/block passes, checkpointed for reverse mode) until every lane
   that needs it is done;
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
@@ -180,20 +180,20 @@ def running_count(mask):
     return lax.associative_scan(jnp.add, mask.astype(jnp.int32))
 
 
-def first_lanes(mask, size: int, count=None, skip=0):
-    """Indices of the first `size` lanes where `mask` holds after the first `skip` of them, in
-    order, padded with N: `jnp.nonzero(mask, size=size, fill_value=N)[0]` for skip = 0 (two
-    cumsums and a scatter-add there, ~200-300 us on 10,000 lanes) as one prefix count and one
-    scatter (~80-140 us). `count`: `running_count(mask)`, where the caller has it."""
+def first_lanes(mask, size: int, count=None):
+    """Indices of the first `size` lanes where `mask` holds, in order, padded with N:
+    `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there,
+    ~200-300 us on 10,000 lanes) as one prefix count and one scatter (~80-140 us). `count`:
+    `running_count(mask)`, where the caller has it."""
     N = mask.shape[0]
     count = running_count(mask) if count is None else count
-    slot = jnp.where(mask & (count > skip), count - 1 - skip, size)  # size: dropped
+    slot = jnp.where(mask, count - 1, size)  # size: dropped
     return jnp.full((size,), N, jnp.int32).at[slot].set(jnp.arange(N, dtype=jnp.int32), mode="drop")
 
 
 def default_block(lanes: int) -> int:
-    """The default block size: every lane up to 256 of them, else max(64, lanes // 16)."""
-    return lanes if lanes <= 256 else max(64, lanes // 16)
+    """The default block size: every lane up to 256 of them, else max(64, lanes // 32)."""
+    return lanes if lanes <= 256 else max(64, lanes // 32)
 
 
 def _take_lanes(a, idx):
@@ -435,7 +435,7 @@ class BatchedLoop:
         self.save_ts = jnp.zeros((0,), dtype) if save_ts is None else save_ts
         self.save_order = jnp.argsort(self.save_ts)
         self.save_sorted = self.save_ts[self.save_order]
-        # Small batches compute the rare work on every lane; large ones on blocks of lanes/16
+        # Small batches compute the rare work on every lane; large ones on blocks of lanes/32
         # (benchmarks/block_size.py: with passes until every lane is done, small blocks cost
         # little in event-dense iterations and save much where few lanes need the work).
         small, block = block if isinstance(block, tuple) else (None, block)
@@ -495,11 +495,15 @@ class BatchedLoop:
         total = count[-1]
 
         def passes(op):
+            # Every lane of `mask`, in order, padded with N to whole blocks: compacted once, each
+            # pass slices its block (a compaction per pass is a scatter over all N lanes).
+            most = -(-self.N // self.block)
+            order = first_lanes(mask, most * self.block, count)
+
             def one(c):
                 done, op = c
-                return done + self.block, fn(first_lanes(mask, self.block, count, skip=done), op)
+                return done + self.block, fn(lax.dynamic_slice(order, (done,), (self.block,)), op)
 
-            most = -(-self.N // self.block)
             _, op = eqxi.while_loop(lambda c: c[0] < total, one, (jnp.zeros_like(total), op),
                                     max_steps=most, kind=self.loop_kind,
                                     checkpoints=most if self.loop_kind == "checkpointed" else None)

@@ -127,19 +127,20 @@ def simulate_batch(
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
-      has it (default: all lanes up to 256 of them, else max(64, lanes/16); all lanes when
+      has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
       `jax.grad`, `jax.jvp` or another derivative is being taken through the call with the
       default `adjoint` or `ForwardMode`: the reverse pass compiles in half the time, the
-      forward-mode one runs in 0.75-0.86x). Results do not
-      depend on it; speed does: each pass costs about the same however many of its slots are
-      used. In one process (`benchmarks/block_size.py`, 2-core CPU, Tsit5, 1e-9), run time
-      against the default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.75x,
-      N/4 1.67x; bouncing ball at N = 10,000 (events dense) N/64 1.46x, N/4 1.25x, N 1.13x;
-      thermostat at N = 2,000 N/4 1.03x, N 1.81x. `block=(small, large)` (`large` None: the
-      default) compiles the rare work for both sizes and takes the small block (one pass) in
-      iterations where it holds every execution that needs the work, for a second compilation
-      of it (+6 to +17 s on a 2-core CPU; (N/64, N/16): Van der Pol 0.90x, ball 1.18x,
-      thermostat 1.19x).
+      forward-mode one runs in 0.75-0.86x). Results do not depend on it; speed does: a block
+      too large computes the work for slots no execution needs where few executions have an
+      event in a step, one too small takes many passes where many do. In one process
+      (`benchmarks/block_size.py`, 2-core CPU, one device, Tsit5, 1e-9), run time against the
+      default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.93x, N/16 1.13x,
+      N/4 2.09x; bouncing ball at N = 10,000 (events dense) N/64 1.11x, N/16 1.01x, N/4
+      1.15x, N 1.30x; thermostat at N = 2,000 N/16 0.93x, N/4 0.87x, N 1.78x.
+      `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
+      and takes the small block (one pass) in iterations where it holds every execution that
+      needs the work, for a second compilation of it (+3 to +7 s on a 2-core CPU; (N/64, N/32):
+      Van der Pol 1.16x, ball 1.09x, thermostat 1.04x).
     - `lanes`: how many executions advance together (default: all N up to 20,000, else
       10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
       that a Monte Carlo batch keeps every lane busy while its executions take different

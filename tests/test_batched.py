@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax import lax
 
 import hybridjax as hj
 from hybridjax import examples
@@ -385,17 +386,20 @@ def test_engine_choice_and_errors():
 def test_block_compaction_equals_nonzero(frac):
     # The event block's lane indices (`first_lanes`: a prefix count and a scatter) against
     # jnp.nonzero with a fixed size, and the prefix count against cumsum: fewer lanes than the
-    # block (padding with N), more (the first ones kept), none and all; after skipping the first
-    # `skip` lanes (the later passes over blocks), nonzero's indices from the skip-th on.
+    # block (padding with N), more (the first ones kept), none and all. The passes over blocks
+    # slice one compaction padded to whole blocks (`on_block`): pass p's block is nonzero's
+    # indices from the (p * block)-th on, padded with N.
     mask = jnp.asarray(np.random.default_rng(int(100 * frac)).random(1000) < frac)
     count = running_count(mask)
     np.testing.assert_array_equal(count, np.cumsum(np.asarray(mask)))
     lanes = np.concatenate([np.nonzero(np.asarray(mask))[0], np.full(2000, 1000)])
     for size in (1, 37, 250, 1000):
         np.testing.assert_array_equal(first_lanes(mask, size), jnp.nonzero(mask, size=size, fill_value=1000)[0])
-        for skip in (1, 37, 500):
-            np.testing.assert_array_equal(first_lanes(mask, size, count, skip=jnp.int32(skip)),
-                                          lanes[skip:skip + size])
+        most = -(-1000 // size)
+        order = first_lanes(mask, most * size, count)
+        for p in sorted({p for p in (0, 1, most // 2, most - 1) if p < most}):
+            np.testing.assert_array_equal(lax.dynamic_slice(order, (jnp.int32(p * size),), (size,)),
+                                          lanes[p * size:(p + 1) * size])
 
 
 def test_watched_function_slots_hold_each_modes_own_in_order():
