@@ -2,11 +2,13 @@
 
 - `scipy_loop`: `scipy.integrate.solve_ivp` with terminal events (direction -1), numpy
   callbacks, a Python loop over epochs, one execution at a time.
-- `diffrax_lockstep`: a jitted `vmap` of a bounded while loop over epochs, each epoch one
-  `diffrax.diffeqsolve` ended by a `diffrax.Event` (all guards of the system as `cond_fn`s, those
-  of other modes, and those not moving into their guard, held positive), `dt0=None`, the
-  step-size controller given. This is the "plain
-  diffrax lock-step loop" of the benchmarks' ratios.
+- `diffrax_lockstep`: a jitted `vmap` of a bounded while loop over epochs (equinox's
+  `while_loop(kind="bounded")`, the loop reverse mode can pass through, as #7 defines the
+  baseline), each epoch one `diffrax.diffeqsolve` ended by a `diffrax.Event` (all guards of the
+  system as `cond_fn`s, those of other modes, and those not moving into their guard, held
+  positive), `dt0=None`, the step-size controller given. This is the "plain diffrax lock-step
+  loop" of the benchmarks' ratios. `loop="lax"`: the epochs in a `lax.while_loop` instead
+  (forward only, no reverse mode), also measured and reported beside it.
 
 - `ball_bare_loop`: problem A only, on the bare lanes-last loop #7's prototype describes
   (hand-written Tsit5 step, one crossing test, Newton on the dense output under a `lax.cond`,
@@ -18,6 +20,7 @@ engines solve the same model; `scipy_loop` uses the problem's numpy twins of the
 """
 
 import diffrax
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,9 +55,13 @@ def scipy_loop(problem, x0, mode0, *, method="RK45", rtol=1e-9, atol=1e-9):
     return count, x
 
 
-def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps=4096):
-    """jit(vmap(...)) of a bounded epoch loop of diffeqsolve + Event. Returns a function
-    `(x0 (N, n), mode0 (N,), args) -> (event_times (N, E), num_events, final_state, final_mode)`."""
+def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps=4096, loop="bounded"):
+    """jit(vmap(...)) of an epoch loop of diffeqsolve + Event: `loop="bounded"` (equinox's bounded
+    while loop, reverse-mode differentiable) or `"lax"` (`lax.while_loop`, forward only). Returns
+    a function `(x0 (N, n), mode0 (N,), args) -> (event_times (N, E), num_events, final_state,
+    final_mode)`."""
+    if loop not in ("bounded", "lax"):
+        raise ValueError(f"loop={loop!r}: 'bounded' or 'lax'")
     K, n = system.num_transitions, system.max_dim
     sources = jnp.asarray(system.sources)
     targets = jnp.asarray(system.targets)
@@ -94,7 +101,13 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
                     times, ~fired)
 
         init = (jnp.zeros(()), x0, mode0, jnp.array(0), jnp.full((max_epochs,), jnp.inf), jnp.array(False))
-        t, y, mode, i, times, _ = lax.while_loop(lambda c: ~c[5] & (c[3] < max_epochs), body, init)
+        def cond(c):
+            return ~c[5] & (c[3] < max_epochs)
+
+        if loop == "bounded":
+            t, y, mode, i, times, _ = eqxi.while_loop(cond, body, init, max_steps=max_epochs, kind="bounded")
+        else:
+            t, y, mode, i, times, _ = lax.while_loop(cond, body, init)
         return times, i, y, mode
 
     del n

@@ -63,9 +63,10 @@ def section(res: dict) -> str:
             "\"Many executions at once\"); everything else runs on one core, as written; the one-core column is "
             "hybridjax with `devices=1`, its ratio to the lock-step loop):", "",
             "| problem | N | hybridjax | hybridjax, one core | scipy `solve_ivp` loop, RK45 | DOP853 "
-            "| plain diffrax lock-step loop (`diffrax.Event`) "
+            "| plain diffrax lock-step loop (`diffrax.Event`, epochs in a bounded while loop) "
+            "| the same, epochs in a `lax.while_loop` (forward only) "
             "| `jax.vmap(hj.simulate)` | `vmap(simulate(engine=\"diffrax\"))` |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for name, b in res["baselines"].items():
         def c(key, b=b):
             x = b[key]
@@ -76,7 +77,8 @@ def section(res: dict) -> str:
                     "the lock-step loop)") if one else ""
         out.append(f"| {name} | {b['diffrax_lockstep']['n']:,} | {_fmt_rate(b['ours_exec_per_s'])}/s{ours_err} | "
                    f"{one_cell} | {c('scipy_RK45')} | {c('scipy_DOP853')} | "
-                   f"{c('diffrax_lockstep')} | {c('engine_vmap') if 'engine_vmap' in b else ''} | "
+                   f"{c('diffrax_lockstep')} | {c('diffrax_lockstep_lax') if 'diffrax_lockstep_lax' in b else ''} | "
+                   f"{c('engine_vmap') if 'engine_vmap' in b else ''} | "
                    f"{c('engine_diffrax') if 'engine_diffrax' in b else ''} |")
     for name, b in res["baselines"].items():
         if "closed_form_jax" in b:
