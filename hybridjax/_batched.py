@@ -9,8 +9,9 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
 
 - the work every step needs (stages, controller, guard samples on the dense output, crossing
   and dip detection) is written on the lanes-last arrays, each field updated once per
-  iteration under a lane mask; the guards are sampled by *slot*, a mode's own watched
-  functions (`Kernels.to_slots`), so the width is the most any one mode watches, not all;
+  iteration under a lane mask; the guards are sampled, and events located, by *slot*, a
+  mode's own watched functions (`Kernels.slot_guards`), so the width is the most any one mode
+  watches, not all;
 - the work only some lanes need (the epoch-start test with its Lie derivatives and the
   epoch's first step; root and minimum location, the implicit-function event point and the reset)
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into
@@ -735,23 +736,21 @@ class BatchedLoop:
         """One lane's first event in its step (as `Loop.step_stage`): dips, root, IFT point,
         reset; then the next epoch's start test (`_start_lane`) on the reset state, so that the
         common case (no guard fires at once) needs no separate start stage."""
-        kern, K, W = self.kern, self.kern.num_transitions, self.kern.num_watch
+        kern, K, S = self.kern, self.kern.num_transitions, self.kern.num_slots
         s_ext = jnp.stack(s_ext)
-        # From the step's slots to every watched function (those not of `mode` never fire).
-        has, suspect = kern.from_slots(mode, has, False), kern.from_slots(mode, suspect, False)
-        j, i_d = kern.from_slots(mode, j, 0), kern.from_slots(mode, i_d, 0)
-        x0_d = kern.from_slots(mode, x0_d, s_ext[0])
+        # The search runs on the step's slots, `mode`'s own watched functions (`slot_guards`;
+        # unused slots read 1 and never fire); the event's function is mapped back at the end.
         interp_sg = ChebyshevDense.from_stages(self.cheb, sg(t), sg(t_next), sg(y), sg(y1), sg(ks))
         a_sg = sg(args)
         s = s_ext[1:]
         tol = self.time_tol(sg(t_next), sg(t_next - t))
 
         def path(k):
-            return lambda x: kern.guards(mode, x, interp_sg.evaluate(x), a_sg)[k]
+            return lambda x: kern.slot_guards(mode, x, interp_sg.evaluate(x), a_sg)[k]
 
         def refine(_):
             return jax.vmap(lambda k, a, b, x: locate_minimum(path(k), a, b, x, tol))(
-                jnp.arange(W), s_ext[i_d], s_ext[i_d + 1], x0_d)
+                jnp.arange(S), s_ext[i_d], s_ext[i_d + 1], x0_d)
 
         x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine,
                                 lambda _: (x0_d, jnp.ones_like(x0_d)), None)
@@ -762,17 +761,18 @@ class BatchedLoop:
         any_event = jnp.any(has)
 
         def locate(_):
-            tk = jax.vmap(lambda k, a, b: locate_root(path(k), a, b, tol))(jnp.arange(W), a_all, b_all)
+            tk = jax.vmap(lambda k, a, b: locate_root(path(k), a, b, tol))(jnp.arange(S), a_all, b_all)
             tk = jnp.where(has, tk, jnp.inf)
             first = jnp.argmin(tk)
             t_min = tk[first]
             t_at = jnp.where(any_event, t_min, b_all[first])
-            g_at = kern.guards(mode, t_at, interp_sg.evaluate(t_at), a_sg)
-            g_from = kern.guards(mode, a_all[first], interp_sg.evaluate(a_all[first]), a_sg)
+            g_at = kern.slot_guards(mode, t_at, interp_sg.evaluate(t_at), a_sg)
+            g_from = kern.slot_guards(mode, a_all[first], interp_sg.evaluate(a_all[first]), a_sg)
             cand = has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & any_event)
-            k = jnp.argmax(cand).astype(jnp.int32)
+            slot = jnp.argmax(cand)
             tk = jnp.where(cand & ~has, t_min, tk)
-            return jnp.where(any_event, tk[k], sg(t_next)), k, jnp.sum(cand) > 1
+            k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
+            return jnp.where(any_event, tk[slot], sg(t_next)), k, jnp.sum(cand) > 1
 
         t_star, k, simultaneous = lax.cond(
             eqxi.unvmap_any(any_event), locate,
@@ -853,7 +853,7 @@ class BatchedLoop:
                     slopes.append((da * y_sg + db * y1_sg + weighted_sum(dc, ks_sg, y_sg)) / safe_h)
 
                 def guard_jvp(m, tt, yy, yd, a):
-                    return jax.jvp(lambda t_, y_: kern.to_slots(m, kern.guards(m, t_, y_, sg(a))), (tt, yy),
+                    return jax.jvp(lambda t_, y_: kern.slot_guards(m, t_, y_, sg(a)), (tt, yy),
                                    (jnp.ones_like(tt), yd))
 
                 pairs = [self.lane_map(guard_jvp, mode, tt, yy, yd, args=args)

@@ -81,6 +81,10 @@ class Kernels:
         self.mode_watch = [[w for w, (src, _) in enumerate(watch) if src == m]
                            for m in range(system.num_modes)]
         self.num_slots = max(map(len, self.mode_watch), default=0)
+        # (modes, slots): the watched function in each mode's slot (0 where the slot is unused).
+        self.slot_watch = jnp.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
+                                       for own in self.mode_watch], dtype=jnp.int32).reshape(
+                                           system.num_modes, self.num_slots)
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -129,6 +133,24 @@ class Kernels:
         g = jnp.stack(values)
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
 
+    def slot_guards(self, mode, t, y, args) -> jax.Array:
+        """`to_slots(mode, guards(mode, t, y, args))`, assembled from the watched functions'
+        values one by one: the (K + W,) vector is never formed, so that under `vmap` no
+        (lanes, K + W) array is built, transposed and indexed (XLA:CPU did that for every guard
+        sample of every step)."""
+        values = []
+        for src, fn in self.watch:
+            tt, yy, aa = mask_inputs(mode == src, (t, y, args))
+            values.append(jnp.asarray(fn(tt, yy, aa)).astype(y.dtype))
+        out = []
+        for s in range(self.num_slots):
+            v = jnp.ones((), y.dtype)
+            for m, own in enumerate(self.mode_watch):
+                if s < len(own):
+                    v = jnp.where(mode == m, values[own[s]], v)
+            out.append(v)
+        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
+
     def to_slots(self, mode, values, fill=1.0) -> jax.Array:
         """(num_slots,): the watched `values` (K + W,) of `mode`'s own functions, in order, padded
         with `fill`. A mode watches only its own guards and domain components (the others read
@@ -142,14 +164,6 @@ class Kernels:
                     v = jnp.where(mode == m, values[own[s]], v)
             out.append(v)
         return jnp.stack(out) if out else jnp.zeros((0,), values.dtype)
-
-    def from_slots(self, mode, slots, fill) -> jax.Array:
-        """(K + W,): `to_slots` undone; the functions not of `mode` read `fill`."""
-        out = []
-        for w, (src, _) in enumerate(self.watch):
-            v = slots[self.mode_watch[src].index(w)]
-            out.append(jnp.where(mode == src, v, jnp.full((), fill, slots.dtype)))
-        return jnp.stack(out) if out else jnp.zeros((0,), slots.dtype)
 
     def reset(self, k, t, y, args) -> jax.Array:
         """R_k(t, y) on the padded state, transition index `k` traced."""

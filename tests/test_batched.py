@@ -402,6 +402,23 @@ def test_block_compaction_equals_nonzero(frac):
                                           lanes[p * size:(p + 1) * size])
 
 
+def test_slot_guards_are_each_modes_own_watched_values():
+    # `slot_guards` (the guard samples' slots, assembled function by function) against the
+    # thermostat's guards and domain components evaluated one by one from their definitions:
+    # slot s of mode m holds m's s-th own watched function, the unused slots read 1.
+    kern = Kernels(THERMO, THERMO_ARGS)
+    rng = np.random.default_rng(3)
+    for mode in range(THERMO.num_modes):
+        for _ in range(3):
+            t, y = jnp.asarray(rng.uniform(0, 10)), jnp.asarray(rng.uniform(10, 30, 1))
+            own = [fn(t, y, THERMO_ARGS) for src, fn in kern.watch if src == mode]
+            expected = [float(v) for v in own] + [1.0] * (kern.num_slots - len(own))
+            np.testing.assert_allclose(kern.slot_guards(jnp.int32(mode), t, y, THERMO_ARGS), expected, rtol=1e-15)
+            np.testing.assert_allclose(kern.slot_guards(jnp.int32(mode), t, y, THERMO_ARGS),
+                                       kern.to_slots(jnp.int32(mode), kern.guards(jnp.int32(mode), t, y, THERMO_ARGS)),
+                                       rtol=0, atol=0)
+
+
 def test_watched_function_slots_hold_each_modes_own_in_order():
     # The batched engine samples guards by slot: slot s of mode m is m's s-th own watched
     # function (guards by transition index, then domain components). The thermostat watches
@@ -415,6 +432,5 @@ def test_watched_function_slots_hold_each_modes_own_in_order():
     for mode, own in expected.items():
         slots = kern.to_slots(jnp.int32(mode), values, fill=-7.0)
         np.testing.assert_array_equal(slots, own + [-7.0] * (4 - len(own)))
-        back = kern.from_slots(jnp.int32(mode), slots, 0.0)
-        np.testing.assert_array_equal(back, [v if kern.watch[i][0] == mode else 0.0
-                                             for i, v in enumerate(np.asarray(values))])
+        # and back: the event search's slot s of mode m is watched function slot_watch[m, s]
+        np.testing.assert_array_equal(values[kern.slot_watch[mode, :len(own)]], own)
