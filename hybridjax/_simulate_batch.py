@@ -134,13 +134,13 @@ def simulate_batch(
       too large computes the work for slots no execution needs where few executions have an
       event in a step, one too small takes many passes where many do. In one process
       (`benchmarks/block_size.py`, 2-core CPU, one device, Tsit5, 1e-9), run time against the
-      default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.93x, N/16 1.13x,
-      N/4 2.09x; bouncing ball at N = 10,000 (events dense) N/64 1.11x, N/16 1.01x, N/4
-      1.15x, N 1.30x; thermostat at N = 2,000 N/16 0.93x, N/4 0.87x, N 1.78x.
+      default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.93x, N/16 1.10x,
+      N/4 1.93x; bouncing ball at N = 10,000 (events dense) N/64 1.10x, N/16 1.01x, N/4
+      1.17x, N 1.29x; thermostat at N = 2,000 N/64 1.10x, N/16 1.14x, N/4 1.00x, N 1.88x.
       `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
       and takes the small block (one pass) in iterations where it holds every execution that
-      needs the work, for a second compilation of it (+3 to +7 s on a 2-core CPU; (N/64, N/32):
-      Van der Pol 1.16x, ball 1.09x, thermostat 1.04x).
+      needs the work, for a second compilation of it (+3 to +6 s on a 2-core CPU; (N/64, N/32):
+      Van der Pol 1.21x, ball 1.10x, thermostat 1.06x).
     - `lanes`: how many executions advance together (default: all N up to 20,000, else
       10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
       that a Monte Carlo batch keeps every lane busy while its executions take different
