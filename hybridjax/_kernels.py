@@ -83,8 +83,7 @@ class Kernels:
         self.num_slots = max(map(len, self.mode_watch), default=0)
         # (modes, slots): the watched function in each mode's slot (0 where the slot is unused).
         self.slot_watch = jnp.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
-                                       for own in self.mode_watch], dtype=jnp.int32).reshape(
-                                           system.num_modes, self.num_slots)
+                                       for own in self.mode_watch], dtype=jnp.int32)
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -119,6 +118,15 @@ class Kernels:
             return jnp.zeros((0,), dtype=bool)
         return self.watch_sources == mode
 
+    def _watched_values(self, mode, t, y, args) -> list:
+        """Every watched function (guards, then domain components) at (t, y), each with its
+        inputs' gradients cut where it does not belong to `mode`; a list of scalars."""
+        values = []
+        for src, fn in self.watch:
+            tt, yy, aa = mask_inputs(mode == src, (t, y, args))
+            values.append(fn(tt, yy, aa).astype(y.dtype))
+        return values
+
     def guards(self, mode, t, y, args) -> jax.Array:
         """(K + W,) watched values (guards, then domain components) of `mode` at (t, y).
 
@@ -126,11 +134,7 @@ class Kernels:
         """
         if self.num_watch == 0:
             return jnp.zeros((0,), dtype=y.dtype)
-        values = []
-        for src, fn in self.watch:
-            tt, yy, aa = mask_inputs(mode == src, (t, y, args))
-            values.append(fn(tt, yy, aa).astype(y.dtype))
-        g = jnp.stack(values)
+        g = jnp.stack(self._watched_values(mode, t, y, args))
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
 
     def slot_guards(self, mode, t, y, args) -> jax.Array:
@@ -138,32 +142,26 @@ class Kernels:
         values one by one: the (K + W,) vector is never formed, so that under `vmap` no
         (lanes, K + W) array is built, transposed and indexed (XLA:CPU did that for every guard
         sample of every step)."""
-        values = []
-        for src, fn in self.watch:
-            tt, yy, aa = mask_inputs(mode == src, (t, y, args))
-            values.append(jnp.asarray(fn(tt, yy, aa)).astype(y.dtype))
-        out = []
-        for s in range(self.num_slots):
-            v = jnp.ones((), y.dtype)
-            for m, own in enumerate(self.mode_watch):
-                if s < len(own):
-                    v = jnp.where(mode == m, values[own[s]], v)
-            out.append(v)
-        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
+        return self._slots(mode, self._watched_values(mode, t, y, args), 1.0, y.dtype)
 
     def to_slots(self, mode, values, fill=1.0) -> jax.Array:
         """(num_slots,): the watched `values` (K + W,) of `mode`'s own functions, in order, padded
         with `fill`. A mode watches only its own guards and domain components (the others read
         +1), so the engine that samples them at every step carries max_I (own of mode I) slots,
         not all K + W (Van der Pol with relay: 1 against 2, the thermostat: 4 against 8)."""
+        return self._slots(mode, values, fill, values.dtype)
+
+    def _slots(self, mode, values, fill, dtype) -> jax.Array:
+        """Slot s of `mode`: values[mode_watch[mode][s]], `fill` where `mode` has fewer;
+        `values` indexable by watched function (an array or a list)."""
         out = []
         for s in range(self.num_slots):
-            v = jnp.full((), fill, values.dtype)
+            v = jnp.full((), fill, dtype)
             for m, own in enumerate(self.mode_watch):
                 if s < len(own):
                     v = jnp.where(mode == m, values[own[s]], v)
             out.append(v)
-        return jnp.stack(out) if out else jnp.zeros((0,), values.dtype)
+        return jnp.stack(out) if out else jnp.zeros((0,), dtype)
 
     def reset(self, k, t, y, args) -> jax.Array:
         """R_k(t, y) on the padded state, transition index `k` traced."""
