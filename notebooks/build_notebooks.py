@@ -238,9 +238,10 @@ per-execution engine under `jax.vmap`."""),
             continue
         x = b[key]
         print(f"  {key:<21} {x['exec_per_s']:10.0f} executions/s  error {x['error']:.0e}  -> hybridjax {x['ratio']:.2g}x")"""),
-        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and 7-32x its own
-per-execution engine under `vmap`. Against the plain diffrax loop it is about 5x on the ball and 9x on Van der
-Pol at 10,000 executions on two cores, 2.5-4x on one (`one_device`), and 3x on the thermostat (1.5x on one core).
+        ("md", """hybridjax is two to three orders of magnitude faster than the scipy loop, and 6-29x its own
+per-execution engine under `vmap`. Against the plain diffrax loop (on one core) it is about 4x on the ball and 8x on
+Van der Pol at 10,000 executions on two cores, 2-4x on one (`one_device`), and 2.6x on the thermostat (1.5x on one
+core); with the plain loop split over both cores too, about 2x on the ball (`benchmarks/per_core.py`).
 The plain loop runs as fast with its epochs in a `lax.while_loop` as in the bounded loop reverse mode needs.
 The plain loop does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
 at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short

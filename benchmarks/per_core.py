@@ -1,0 +1,127 @@
+"""Problem A on one core and on every core, each way of computing it, in one process.
+
+#7's ratios compare hybridjax with what a user would write. The ratios depend on how many
+cores each side may use: hybridjax splits its batch over the cores (`simulate_batch`'s
+`devices`), the baselines as written run on one. This script runs every way on one core
+*and* split over every core (one CPU device per core: hybridjax by its own `devices`, the
+others by hand, an equal part of the executions put on each device and the same jitted
+function called there, the parts running at once), in alternating rounds, and reports each rate and
+the ratios between them:
+
+- the plain diffrax lock-step loop (`_baselines.diffrax_lockstep`, epochs in a bounded loop);
+- #7's prototype recipe written bare for the ball (`_baselines.ball_bare_loop`);
+- the closed form, jitted (`work_precision.ball_closed_form_jax`): no integration at all;
+- hybridjax (`jax.jit(hj.simulate_batch)`, `devices=1` and every device).
+
+Tsit5, rtol = atol = 1e-9, float64, the ball of problem A (h0 ~ U(0.5, 1.5), v0 ~ U(-1, 1),
+e = 0.8, T = 2.5), N executions; each rate is the best of `--rounds` runs, errors against the
+closed form (numpy, `examples.bouncing_ball_closed_form`) for every execution.
+
+    python benchmarks/per_core.py [--n 10000] [--rounds 7]   # table; results/per_core.json
+"""
+
+import argparse
+import time
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import problems as P
+from _baselines import ball_bare_loop, diffrax_lockstep
+from _common import machine_info, write_json
+from work_precision import ball_closed_form_jax, errors, runner  # also: one device per core, x64
+
+G, E = 9.8, 0.8
+
+
+def split(fn):
+    """`fn` (x0, mode0 with executions first -> a pytree of arrays, executions first) on equal
+    parts of the executions, one part per device, as a user splits by hand: each part put on its
+    device and the jitted `fn` called there (JAX dispatches asynchronously, so the parts run at
+    once); returns the parts' outputs, a list. (`jax.shard_map` would be one program, but the
+    diffrax loop fails inside it: equinox's closure conversion, patrick-kidger/equinox#1261.)"""
+    jfn, devs = jax.jit(fn), jax.devices()
+
+    def run(x, m):
+        xs, ms = np.array_split(np.asarray(x), len(devs)), np.array_split(np.asarray(m), len(devs))
+        return [jfn(jax.device_put(a, d), jax.device_put(b, d)) for a, b, d in zip(xs, ms, devs, strict=True)]
+
+    return run
+
+
+def joined(read):
+    """`read` for the output of `split`: the parts' (num_events, final_state) joined."""
+    def out(parts):
+        pieces = [read(p) for p in parts]
+        return tuple(np.concatenate([np.asarray(q[i]) for q in pieces]) for i in range(2))
+    return out
+
+
+def ways(prob):
+    """{name: (fn of (x0, mode0), reads (num_events, final_state) off its output)}."""
+    t1 = prob.t1
+    lock = diffrax_lockstep(prob.system, solver=diffrax.Tsit5(), t1=t1, max_epochs=prob.max_epochs,
+                            max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+    bare = ball_bare_loop()
+    closed = ball_closed_form_jax(prob.max_epochs)
+    out = {}
+    for cores in ("one core", "every core"):
+        wrap = jax.jit if cores == "one core" else split
+        rd = (lambda r: r) if cores == "one core" else joined
+        out[f"diffrax lock-step loop, {cores}"] = (wrap(lambda x, m: lock(x, m, prob.args)),
+                                                   rd(lambda r: (r[1], r[2])))
+        out[f"bare prototype loop, {cores}"] = (wrap(lambda x, m: bare(x, G, E, t1)), rd(lambda r: r))
+        out[f"closed form, {cores}"] = (wrap(lambda x, m: closed(x, G, E, t1)), rd(lambda r: r))
+        fn = runner(prob, "Tsit5", devices=1 if cores == "one core" else None)
+        out[f"hybridjax, {cores}"] = (lambda x, m, fn=fn: fn(x, m, 1e-9, 1e-12),
+                                      lambda r: (r.num_events, r.final_state))
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, default=10_000, help="executions (a multiple of the core count)")
+    ap.add_argument("--rounds", type=int, default=7, help="timed rounds, alternating the ways")
+    opts = ap.parse_args()
+    prob = P.ball()
+    x0, m0 = prob.sample(np.random.default_rng(5), opts.n)
+    truths = [prob.truth(x, m) for x, m in zip(x0, m0, strict=True)]
+    xa, ma = jnp.asarray(x0), jnp.asarray(m0)
+    fns = ways(prob)
+    rows = {}
+    for name, (fn, read) in fns.items():
+        t = time.perf_counter()
+        res = jax.block_until_ready(fn(xa, ma))
+        ne, fs = read(res)
+        err, wrong = errors(prob, truths, fs, ne)
+        rows[name] = dict(first_call_s=time.perf_counter() - t, error=err, wrong=wrong, runs_s=[])
+    for _ in range(opts.rounds):  # alternating, so that the machine's drift touches every way alike
+        for name, (fn, _) in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn(xa, ma))
+            rows[name]["runs_s"].append(time.perf_counter() - t)
+    lock1 = opts.n / min(rows["diffrax lock-step loop, one core"]["runs_s"])
+    closed1 = opts.n / min(rows["closed form, one core"]["runs_s"])
+    print(f"problem A, N = {opts.n}, {len(jax.devices())} device(s), Tsit5, 1e-9, float64; best of {opts.rounds}")
+    print(f"{'way':<34} {'exec/s':>11} {'x lock-step (1 core)':>21} {'x closed form (1 core)':>23}"
+          f" {'error':>8} {'wrong':>5}")
+    for name, r in rows.items():
+        r["exec_per_s"] = opts.n / min(r["runs_s"])
+        r["vs_lockstep_one_core"] = r["exec_per_s"] / lock1
+        r["vs_closed_form_one_core"] = r["exec_per_s"] / closed1
+        print(f"{name:<34} {r['exec_per_s']:11.0f} {r['vs_lockstep_one_core']:21.2f}"
+              f" {r['vs_closed_form_one_core']:23.3f} {r['error']:8.1e} {r['wrong']:5d}")
+    for cores in ("one core", "every core"):
+        h, b = rows[f"hybridjax, {cores}"], rows[f"bare prototype loop, {cores}"]
+        lk, cf = rows[f"diffrax lock-step loop, {cores}"], rows[f"closed form, {cores}"]
+        print(f"{cores}: hybridjax {h['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
+              f"{h['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form, {h['exec_per_s'] / b['exec_per_s']:.2f}x "
+              f"the bare loop; the bare loop {b['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
+              f"{b['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form (each on {cores})")
+    path = write_json("per_core", dict(machine=machine_info(), n=opts.n, rounds=opts.rounds, rows=rows))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
