@@ -81,7 +81,7 @@ def ways(prob):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--n", type=int, default=10_000, help="executions (a multiple of the core count)")
+    ap.add_argument("--n", type=int, default=10_000, help="executions")
     ap.add_argument("--rounds", type=int, default=7, help="timed rounds, alternating the ways")
     opts = ap.parse_args()
     prob = P.ball()
