@@ -30,7 +30,12 @@ import numpy as np
 import problems as P
 from _baselines import ball_bare_loop, diffrax_lockstep
 from _common import machine_info, write_json
-from work_precision import ball_closed_form_jax, errors, runner  # also: one device per core, x64
+from work_precision import (  # also: one device per core, x64
+    ball_closed_form_jax,
+    errors,
+    runner,
+    with_constants,
+)
 
 G, E = 9.8, 0.8
 
@@ -41,7 +46,7 @@ def split(fn):
     device and the jitted `fn` called there (JAX dispatches asynchronously, so the parts run at
     once); returns the parts' outputs, a list. (`jax.shard_map` would be one program, but the
     diffrax loop fails inside it: equinox's closure conversion, patrick-kidger/equinox#1261.)"""
-    jfn, devs = jax.jit(fn), jax.devices()
+    jfn, devs = with_constants(fn), jax.devices()
 
     def run(x, m):
         xs, ms = np.array_split(np.asarray(x), len(devs)), np.array_split(np.asarray(m), len(devs))
@@ -67,7 +72,7 @@ def ways(prob):
     closed = ball_closed_form_jax(prob.max_epochs)
     out = {}
     for cores in ("one core", "every core"):
-        wrap = jax.jit if cores == "one core" else split
+        wrap = with_constants if cores == "one core" else split
         rd = (lambda r: r) if cores == "one core" else joined
         out[f"diffrax lock-step loop, {cores}"] = (wrap(lambda x, m: lock(x, m, prob.args)),
                                                    rd(lambda r: (r[1], r[2])))
