@@ -28,7 +28,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._simulate_batch import simulate_batch
-from ._status import STATUS_NAMES
+from ._status import STATUS_NAMES, Status
 from ._system import HybridSystem
 
 
@@ -74,7 +74,8 @@ class MonteCarloResult(NamedTuple):
 
     - `n`: executions run.
     - `per_execution`: dict of numpy arrays (status, num_events, final_time, final_mode,
-      final_state, zeno_time), or None with `keep="summary"`.
+      final_state, zeno_time), or None with `keep="summary"`. `status` holds the integer codes
+      of `hj.Status` (`per_execution["status"] == hj.Status.ZENO` selects the Zeno executions).
     - `status_fractions`: {name: (fraction, (low, high))} with 95% Wilson intervals.
     - `zeno_time`, `num_events`: running statistics (n, mean, std, min, max).
     - `event_histogram`: counts of executions by number of events (index = events).
@@ -259,7 +260,7 @@ def monte_carlo(
         out = compiled(xs, a)
         host = {k: np.asarray(jax.device_get(v))[:m] for k, v in out.items()}
         counts += np.bincount(host["status"], minlength=len(STATUS_NAMES))
-        zeno_stats.update(host["zeno_time"][host["status"] == STATUS_NAMES.index("ZENO")])
+        zeno_stats.update(host["zeno_time"][host["status"] == Status.ZENO])
         event_stats.update(host["num_events"])
         h = np.bincount(host["num_events"])
         if h.size > hist.size:

@@ -155,6 +155,26 @@ def _initial_state(system: HybridSystem, x0, mode0, dtype) -> jax.Array:
     return x0 if m == n else jnp.concatenate([x0, jnp.zeros((n - m,), dtype)])
 
 
+def float_type(x0_dtype):
+    """The solution's dtype: x0's float type (at least float32); for an integer or boolean x0,
+    the default float type (float64 with `jax_enable_x64`)."""
+    if jnp.issubdtype(x0_dtype, jnp.integer) or jnp.issubdtype(x0_dtype, jnp.bool_):
+        return jnp.result_type(float)
+    return jnp.result_type(x0_dtype, jnp.float32)
+
+
+def promote_args(args, dtype):
+    """`args` with its integer array leaves (NumPy or JAX) converted to `dtype`, so that the
+    flows, guards and resets compute in the solution's float type. Booleans, floats and Python
+    numbers (weakly typed: they take the type of the state they meet) are left as given."""
+    def promote(leaf):
+        if eqx.is_array(leaf) and jnp.issubdtype(leaf.dtype, jnp.integer):
+            return jnp.asarray(leaf, dtype)
+        return leaf
+
+    return jax.tree_util.tree_map(promote, args)
+
+
 def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, max_epochs,
                      max_steps, event_tol, interior_points, max_zero_epochs, zeno_window,
                      zeno_max_ratio, adjoint):
@@ -171,10 +191,10 @@ def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, 
     ):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
-    dtype = jnp.result_type(x0_arr.dtype, jnp.float32)
+    dtype = float_type(x0_arr.dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
-    system.check(args, dtype)
+    system.check(promote_args(args, dtype), dtype)
     kind, checkpoints = _loop_kind(adjoint)
     controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
     solver = _prepare_solver(solver, controller, kind)
@@ -239,11 +259,15 @@ def simulate(
 
     - `system`: the `HybridSystem`.
     - `x0`: the initial state, of `mode0`'s dimension (or padded to the largest dimension,
-      which is required when `mode0` is traced, e.g. under `vmap`).
+      which is required when `mode0` is traced, e.g. under `vmap`). Its float type is the
+      solution's (float32 or float64); an integer `x0` (`jnp.array([1, 0])`) is promoted to the
+      default float type, float64 with `jax.config.update("jax_enable_x64", True)`.
     - `mode0`: initial mode, by name or index.
     - `t0`, `t1`: the time interval, t1 >= t0: checked at the call (`ValueError`) where both
       are known, inside the run (`eqx.error_if`) where either is traced.
-    - `args`: any pytree passed to every flow, guard, reset and domain.
+    - `args`: any pytree passed to every flow, guard, reset and domain. Its integer array
+      leaves are converted to the solution's float type (Python numbers are left as given:
+      they take the float type of the state they meet); `sol.args` holds them so converted.
     - `solver`: a diffrax solver (default `Tsit5()`); implicit ones (`Kvaerno5()`) work.
     - `stepsize_controller`: a diffrax controller; default `PIDController(rtol=1e-8,
       atol=1e-8)` in float64, `1e-5` in float32.
@@ -298,6 +322,7 @@ def simulate(
         interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
         zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
     solver, controller = _choose_engine(engine, solver, controller)
+    args = promote_args(args, dtype)
 
     y0 = _initial_state(system, x0_arr, mode0, dtype)
     m0 = as_mode_index(system, mode0)

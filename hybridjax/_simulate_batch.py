@@ -13,7 +13,7 @@ from jaxtyping import ArrayLike, Float, Int
 from ._batched import BatchedLoop, as_status
 from ._eager import compiled_when_eager
 from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
-from ._simulate import _checked_options, _initial_state, _save_times, simulate
+from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
 from ._system import HybridSystem
 from ._validation import check_time_span
@@ -205,6 +205,7 @@ def simulate_batch(
                 adjoint=adjoint)
     dtype, kind, checkpoints, solver_p, controller, event_tol_v = _checked_options(
         system, x0_arr[0], lane_args, **opts)
+    args = promote_args(args, dtype)
     per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
     refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
     if engine == "batched" and refusal is not None:

@@ -57,7 +57,9 @@ class Solution(eqx.Module):
     - `final_time`, `final_mode`, `final_state`: where the execution stopped.
     - `zeno_time`, `zeno_state`: the extrapolated accumulation time and limit state of a Zeno
       execution (`inf` otherwise), whether it stopped with `ZENO` or was completed.
-    - `status`: an `hj.Status`; everything before the stop is kept.
+    - `status`: an `hj.Status`; everything before the stop is kept. It is also the status's
+      integer code: `int(sol.status)` for one execution, `np.asarray(sol.status)` for a batch,
+      `==` with `hj.Status` members and with integer codes (see `Status`).
     - `ts`, `ys`, `saved_modes`: the requested save times, the state there and its mode
       (`inf` / `-1` for times the execution did not reach). At an event time the saved
       state is the pre-event one.
@@ -93,7 +95,8 @@ class Solution(eqx.Module):
     # ------------------------------------------------------------------ reading
     @property
     def status_code(self) -> Int[Array, "*batch"]:
-        """The status as an integer array (index into `hj.STATUS_NAMES`)."""
+        """The status as an integer array (index into `hj.STATUS_NAMES`); traced inside `jax.jit`,
+        where `int(sol.status)` and `np.asarray(sol.status)` need concrete values."""
         return self.status._value
 
     @property

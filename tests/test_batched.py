@@ -132,6 +132,9 @@ def test_batched_engine_stops_with_the_same_status_and_keeps_the_partial_results
     system, rows, mode0, t1, args, kw, status = STATUS_CASES[name]
     got, want = _both(system, jnp.asarray(rows, float), mode0, t1, args, **kw)
     assert list(np.asarray(want.status_name)) == [status] * len(rows)
+    # a batch's statuses as integer codes, and compared with a member
+    np.testing.assert_array_equal(np.asarray(got.status), [int(getattr(hj.Status, status))] * len(rows))
+    assert np.all(np.asarray(got.status == getattr(hj.Status, status)))
     _assert_same_executions(got, want, rtol=1e-7, atol=1e-8)
 
 

@@ -73,6 +73,25 @@ def test_float32_dtypes_are_preserved_and_accurate_to_float32():
     np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], atol=5e-5)
 
 
+def test_integer_initial_state_and_args_promote_to_the_default_float_type():
+    # x0 = (1, 0) and g = 10 as integer arrays: float64 throughout (x64 is on in the tests), and
+    # accurate to rounding against the closed form (the flow is polynomial in t, of degree 2,
+    # which Tsit5 integrates exactly; the event times are located to 1e-12 relative).
+    x0, args = jnp.array([1, 0]), {"g": jnp.array(10), "e": 0.8}
+    sol = hj.simulate(BALL, x0, "flight", 0.0, 2.0, args)
+    for name in ("event_times", "states_before", "states_after", "final_state", "final_time", "x0"):
+        assert getattr(sol, name).dtype == jnp.float64, name
+    assert sol.args["g"].dtype == jnp.float64
+    ref = ball_reference(1.0, 0.0, 10.0, 0.8, 2.0)
+    n = len(ref["event_times"])
+    assert int(sol.num_events) == n
+    np.testing.assert_allclose(sol.event_times[:n], ref["event_times"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.final_state, ref["final_state"], rtol=0, atol=1e-12)
+    # simulate_batch's dtypes, by abstract evaluation (nothing compiled)
+    out = jax.eval_shape(lambda: hj.simulate_batch(BALL, jnp.array([[1, 0], [2, 0]]), "flight", 0.0, 2.0, args))
+    assert out.final_state.dtype == out.event_times.dtype == out.args["g"].dtype == jnp.float64
+
+
 def test_batched_entry_point_does_not_retrace():
     @jax.jit
     @eqx.debug.assert_max_traces(max_traces=1)

@@ -31,6 +31,34 @@ def test_max_epochs_keeps_the_events_and_stops_before_the_next():
     np.testing.assert_allclose(sol.final_state, [0.0, -ref["post_velocities"][2]], atol=1e-9)
 
 
+def test_a_status_is_its_integer_code():
+    # The run of test_max_epochs_keeps_the_events_and_stops_before_the_next (its program reused).
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, BALL_ARGS,
+                      stepsize_controller=TIGHT, max_epochs=3)
+    code = hj.STATUS_NAMES.index("MAX_EPOCHS")
+    assert int(sol.status) == int(hj.Status.MAX_EPOCHS) == code
+    assert hj.STATUS_NAMES[sol.status] == "MAX_EPOCHS"
+    assert [int(getattr(hj.Status, name)) for name in hj.STATUS_NAMES] == list(range(len(hj.STATUS_NAMES)))
+    for same in (code, np.int32(code), jnp.asarray(code), hj.Status.MAX_EPOCHS):
+        assert bool(sol.status == same) and bool(same == sol.status) and not bool(sol.status != same)
+    assert not bool(sol.status == hj.Status.T1_REACHED) and bool(sol.status != 0)
+    # against integer codes as a Monte Carlo table holds them (NumPy on either side)
+    table = np.array([0, code, 3])
+    np.testing.assert_array_equal(table == sol.status, [False, True, False])
+    np.testing.assert_array_equal(sol.status == table, [False, True, False])
+    np.testing.assert_array_equal(table == hj.Status.ZENO, [False, False, True])
+    # traced, inside jax.jit
+    assert bool(jax.jit(lambda s: s == hj.Status.MAX_EPOCHS)(sol.status))
+    assert bool(jax.jit(lambda s: s == code)(sol.status))
+    # two executions' statuses stacked, as vmap stacks them: np.asarray gives the codes
+    reached = ball_runner(3.0)(jnp.array([1.0, 0.0]), BALL_ARGS).status
+    batch = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), reached, sol.status)
+    np.testing.assert_array_equal(np.asarray(batch), [0, code])
+    np.testing.assert_array_equal(batch == hj.Status.MAX_EPOCHS, [False, True])
+    with pytest.raises(ValueError, match="integer status codes"):
+        sol.status == 1.0  # noqa: B015
+
+
 def test_max_steps_keeps_the_partial_trajectory():
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, BALL_ARGS,
                       stepsize_controller=TIGHT, max_steps=3)
