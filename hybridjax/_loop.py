@@ -22,9 +22,11 @@ in the small loop state and written into the max_epochs-long `EventRecord` once 
 iteration, so that the many per-execution selects of an iteration never copy the record.
 
 Event times are differentiated by the implicit function theorem with the true vector field,
-dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder
-or the interpolant's derivative; the next epoch starts at that traced time, so AD through
-the loop composes flows and resets into the saltation matrix.
+dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder's
+iterations, with the event held at a fixed elapsed time within its step (`event_point`), so
+that a shift of an epoch's start time moves its event time one-for-one; the next epoch starts
+at that traced time, so AD through the loop composes flows and resets into the saltation
+matrix.
 """
 
 from typing import Any
@@ -621,24 +623,40 @@ class Loop:
 def event_point(kern, eps, mode, k, t_star, interp, args):
     """The event time and pre-event state, differentiable by the implicit function theorem.
 
-    With t* found without gradients and x*(theta) = interpolant(t*), the returned time is
-    t* - (g(t*, x*) - [g]) / [D_t g + D_x g F] and the state x* + F (t - t*), [.] meaning
-    stop_gradient: equal in value to (t*, x*), with dt = -dg / gdot and dx = dx* + F dt.
+    The event lies at the elapsed time u* = t* - t_s after the start t_s of its step. The
+    returned time is t_s + u* - (g(t, x*) - [g]) / [D_t g + D_x g F] and the state
+    x* + [F] (t - t*), with x* the dense output at the fixed elapsed time u*, F = F(t*, x*)
+    the true vector field and [.] meaning stop_gradient: equal in value to (t*, x*), with
+
+        dt = dt_s - (D_t g dt_s + D_x g dx*) / gdot,    dx = dx* + F (dt - dt_s),
+
+    where dx* carries the dependence on the epoch's start state and parameters (the dense
+    output's coefficients). Holding u* fixed, rather than t*, makes a shift of the epoch's
+    start time reach the event time directly: for an autonomous flow and guard the event time
+    moves one-for-one with it, exactly, whatever the solver's local error. (Through t* it
+    would arrive as D_x g xdot / D_x g F, with xdot the dense output's slope: 1 + O(tol) at
+    every epoch, an error of every later event's derivative that grows with the square of the
+    event count.) The denominator uses F, not xdot: the true slope, accurate to the
+    tolerance where the dense output's slope is one order less so.
+
     Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
     (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
     ill-conditioned.
     """
-    x_star = interp.evaluate(t_star)
-    F = kern.flow(mode, t_star, x_star, args)
+    t_s = interp.t0
+    t_at = t_s + sg(t_star - t_s)  # the value t*, the derivative of the step's start
+    x_star = interp.evaluate(t_at)  # (t_at - t_s) / h: no derivative, u* held fixed
+    F = kern.flow(mode, t_at, x_star, args)
 
     def g(tt, xx):
         return kern.guards(mode, tt, xx, args)[k]
 
-    g_val = g(t_star, x_star)
+    g_val = g(t_at, x_star)
     gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
     gdot = sg(gt + unrolled_sum(gx * sg(F)))  # dg/dt along the true vector field (see `fold`)
     size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(sg(F) ** 2))
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
     safe = jnp.where(gdot != 0, gdot, 1.0)
-    t_ev = t_star - (g_val - sg(g_val)) / safe
-    return t_ev, x_star + F * (t_ev - t_star), grazing
+    shift = -(g_val - sg(g_val)) / safe  # zero in value
+    t_ev = t_star + (t_at - sg(t_at)) + shift
+    return t_ev, x_star + F * shift, grazing
