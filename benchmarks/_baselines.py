@@ -3,16 +3,15 @@
 - `scipy_loop`: `scipy.integrate.solve_ivp` with terminal events (direction -1), numpy
   callbacks, a Python loop over epochs, one execution at a time.
 - `diffrax_lockstep`: a jitted `vmap` of a bounded while loop over epochs (equinox's
-  `while_loop(kind="bounded")`, the loop reverse mode can pass through, as #7 defines the
-  baseline), each epoch one `diffrax.diffeqsolve` ended by a `diffrax.Event` (all guards of the
+  `while_loop(kind="bounded")`, the loop reverse mode can pass through), each epoch one `diffrax.diffeqsolve` ended by a `diffrax.Event` (all guards of the
   system as `cond_fn`s, those of other modes, and those not moving into their guard, held
   positive), `dt0=None`, the step-size controller given. This is the "plain diffrax lock-step
   loop" of the benchmarks' ratios. `loop="lax"`: the epochs in a `lax.while_loop` instead
   (forward only, no reverse mode), also measured and reported beside it.
 
-- `ball_bare_loop`: problem A only, on the bare lanes-last loop #7's prototype describes
+- `ball_bare_loop`: problem A only, on a bare hand-written lanes-last loop
   (hand-written Tsit5 step, one crossing test, Newton on the dense output under a `lax.cond`,
-  no record, saves or status checks): what that recipe reaches on this machine with nothing
+  no record, saves or status checks): what such a loop reaches with nothing
   general, against which a general engine's cost is read.
 
 `diffrax_lockstep` takes the problem's `HybridSystem` and uses its user functions, so the
@@ -115,7 +114,7 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
 
 
 def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
-    """The bouncing ball on the bare lanes-last loop that #7's prototype describes, written for
+    """The bouncing ball on a bare hand-written lanes-last loop, written for
     this one problem (it knows the flow, the single guard h = 0 and the reset): a reference for
     what a general engine could reach, not a proven bound.
 

@@ -2,9 +2,7 @@
 
 `simulate_batch` does the work only some executions need in an iteration (epoch start, event
 location, reset) on blocks of them, pass after pass until every one is done (results do not
-depend on the size). Settings: the default (lanes/32), lanes/4 (the default before the passes,
-when executions beyond the block waited an iteration), lanes/16 (the default until the passes
-sliced one compaction of the lanes instead of compacting them anew in each pass), lanes/64,
+depend on the size). Settings: the default (lanes/32), lanes/4, lanes/16, lanes/64,
 the pair (lanes/64, default) (both sizes compiled; the small one taken where it holds every
 execution that needs it) and the whole batch. Problems: the bouncing ball (A) and the Van der Pol relay (B) at N = 10,000,
 the thermostat (C) at N = 2,000; Tsit5, rtol = atol = 1e-9, float64. Each setting is compiled

@@ -1,8 +1,8 @@
-"""Calls outside `jax.jit` (as in a notebook): each call's wall time, before and now.
+"""Calls outside `jax.jit` (as in a notebook): each call's wall time, compiled once or every time.
 
 `simulate` and `simulate_batch` called directly are compiled once per configuration and
-reused (`hybridjax._eager`); the plain call they wrap (`hj.simulate.__wrapped__`, what every
-direct call did before) traced and compiled its loops on every call. Measured in one process,
+reused (`hybridjax._eager`); the plain call they wrap (`hj.simulate.__wrapped__`) traces and
+compiles its loops on every call, and is measured beside them. Measured in one process,
 on the bouncing ball (e = 0.8, T = 2.5, Tsit5, rtol = atol = 1e-9, float64): `simulate` on one
 execution and `simulate_batch` on N = 1,000, four calls each way: three with new initial
 states (same shapes), then one with a changed Python number in `args` (g = 9.0), which is
@@ -10,9 +10,11 @@ part of the program and compiles a new one. The process's one-off costs (JAX's f
 the dense-output weights) are paid by a warm-up run of another problem first. Each result is
 checked against the closed form (largest final-state error). Then `monte_carlo` (20,000 balls
 with v0 ~ U(-1, 1), two chunks, three runs with new keys), with its kept chunk programs dropped
-before each run (what every run did before) and kept (now). Then `periodic_orbit` on the
-rimless wheel, three slopes given as arrays (now only: the plain version is gone; the commit
-before this one measured 20-22 s for every call, with `python` on the README's example).
+before each run and kept. Then `periodic_orbit` on the rimless wheel, three slopes given as
+arrays (compiled once; it has no plain-call form).
+
+JSON: `rows[function][way]`, a list of calls (`call`, `wall_s`, `max_error`, and `g`,
+`gamma` or `compile_s` where they apply); ways "compiled every call" and "compiled once".
 
     python benchmarks/eager_calls.py     # prints a table, writes results/eager_calls.json
 """
@@ -65,7 +67,7 @@ def sampler(key, m):
 
 def monte_carlo_calls(keep_programs: bool) -> list[dict]:
     """Three `monte_carlo` runs of 20,000 balls (chunks of 10,000), new keys; without
-    `keep_programs` the kept programs are dropped before each (what every call did before)."""
+    `keep_programs` the kept programs are dropped before each, so that each compiles."""
     from hybridjax import _montecarlo
 
     out = []
@@ -106,11 +108,11 @@ def main():
                                       dict(a=0.1, T_amb=30.0, P_heat=2.5, P_cool=2.0, s=20.0)).final_state)
     rows = {}
     for name, fn, batch in (("simulate", hj.simulate, False), ("simulate_batch (N = 1,000)", hj.simulate_batch, True)):
-        rows[name] = {"plain call (before)": calls(fn.__wrapped__, batch, 0),
-                      "compiled once (now)": calls(fn, batch, 1)}
-    rows["monte_carlo (20,000 in 2 chunks)"] = {"plain call (before)": monte_carlo_calls(False),
-                                                "compiled once (now)": monte_carlo_calls(True)}
-    rows["periodic_orbit (rimless wheel)"] = {"compiled once (now)": periodic_orbit_calls()}
+        rows[name] = {"compiled every call": calls(fn.__wrapped__, batch, 0),
+                      "compiled once": calls(fn, batch, 1)}
+    rows["monte_carlo (20,000 in 2 chunks)"] = {"compiled every call": monte_carlo_calls(False),
+                                                "compiled once": monte_carlo_calls(True)}
+    rows["periodic_orbit (rimless wheel)"] = {"compiled once": periodic_orbit_calls()}
     print(f"{'function':34s} {'way':22s} " + " ".join(f"{'call ' + str(k):>9s}" for k in (1, 2, 3))
           + f" {'call 4 (g)':>10s} {'max error':>9s}")
     for name, ways in rows.items():

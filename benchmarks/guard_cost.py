@@ -12,8 +12,8 @@ Twice, each in a fresh process (JAX reads `XLA_FLAGS` once; the script re-runs i
 `--one`): with XLA's defaults, and with `--xla_cpu_experimental_ynn_fusion_type=` (XLA:CPU in
 jaxlib 0.10 hands reductions, dot products among them, to YNNPACK, in calls that do not fuse
 with their inputs; the flag turns that off). hybridjax's own loops write their small
-reductions out, so the setting moves only code that reduces: the bare loop's first release
-reduced over the two components (19.7 -> 11.9 ms with the flag).
+reductions out, so the setting moves only code that reduces (a user's flow that sums over
+components, `jnp.sum(x)` or `x @ w`, pays that price).
 
     python benchmarks/guard_cost.py      # prints a table, writes results/guard_cost.json
 """

@@ -5,6 +5,9 @@ An execution is Zeno before t1 when sqrt(2 h0 / g) (1 + e) / (1 - e) <= t1; the 
 Zeno fraction is compared with the closed-form fraction of the same samples. Reports the
 run time, executions/s, peak resident memory and the Zeno fraction with its 95% interval.
 
+Writes results/monte_carlo_zeno.json (the run's figures, the status counts, the Zeno fraction with
+its interval and the closed-form fraction, Zeno-time and event-count statistics).
+
     python benchmarks/monte_carlo_zeno.py [N] [chunk] [lanes]   # default 1,000,000, 50,000, and
                                                                 # simulate_batch's default lanes
 """

@@ -1,4 +1,4 @@
-"""Numerical limits: the figures behind the README's "Numerical limits" section.
+"""Numerical limits: accuracy at the extremes (grazing, scales, long runs, stiffness, float32).
 
 Each case is measured against an independent truth (a closed form, in 50-digit decimal
 arithmetic where float64 itself would be the limit; or a conserved quantity):

@@ -1,6 +1,6 @@
 """Problem A on one core and on every core, each way of computing it, in one process.
 
-#7's ratios compare hybridjax with what a user would write. The ratios depend on how many
+The benchmarks' ratios compare hybridjax with what a user would write. The ratios depend on how many
 cores each side may use: hybridjax splits its batch over the cores (`simulate_batch`'s
 `devices`), the baselines as written run on one. This script runs every way on one core
 *and* split over every core (one CPU device per core: hybridjax by its own `devices`, the
@@ -9,7 +9,7 @@ function called there, the parts running at once), in alternating rounds, and re
 the ratios between them:
 
 - the plain diffrax lock-step loop (`_baselines.diffrax_lockstep`, epochs in a bounded loop);
-- #7's prototype recipe written bare for the ball (`_baselines.ball_bare_loop`);
+- a bare hand-written loop for the ball alone (`_baselines.ball_bare_loop`);
 - the closed form, jitted (`work_precision.ball_closed_form_jax`): no integration at all;
 - hybridjax (`jax.jit(hj.simulate_batch)`, `devices=1` and every device).
 
@@ -76,7 +76,7 @@ def ways(prob):
         rd = (lambda r: r) if cores == "one core" else joined
         out[f"diffrax lock-step loop, {cores}"] = (wrap(lambda x, m: lock(x, m, prob.args)),
                                                    rd(lambda r: (r[1], r[2])))
-        out[f"bare prototype loop, {cores}"] = (wrap(lambda x, m: bare(x, G, E, t1)), rd(lambda r: r))
+        out[f"bare hand-written loop, {cores}"] = (wrap(lambda x, m: bare(x, G, E, t1)), rd(lambda r: r))
         out[f"closed form, {cores}"] = (wrap(lambda x, m: closed(x, G, E, t1)), rd(lambda r: r))
         fn = runner(prob, "Tsit5", devices=1 if cores == "one core" else None)
         out[f"hybridjax, {cores}"] = (lambda x, m, fn=fn: fn(x, m, 1e-9, 1e-12),
@@ -118,7 +118,7 @@ def main():
         print(f"{name:<34} {r['exec_per_s']:11.0f} {r['vs_lockstep_one_core']:21.2f}"
               f" {r['vs_closed_form_one_core']:23.3f} {r['error']:8.1e} {r['wrong']:5d}")
     for cores in ("one core", "every core"):
-        h, b = rows[f"hybridjax, {cores}"], rows[f"bare prototype loop, {cores}"]
+        h, b = rows[f"hybridjax, {cores}"], rows[f"bare hand-written loop, {cores}"]
         lk, cf = rows[f"diffrax lock-step loop, {cores}"], rows[f"closed form, {cores}"]
         print(f"{cores}: hybridjax {h['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
               f"{h['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form, {h['exec_per_s'] / b['exec_per_s']:.2f}x "

@@ -10,8 +10,8 @@ For problems A-D (`problems.py`), all measured in one run on this machine:
 - hybridjax is `jax.jit(hj.simulate_batch)` (the batched engine for the explicit RK solvers,
   `vmap(simulate)` for the implicit ones);
 - baselines at Tsit5, rtol = atol = 1e-9: scipy `solve_ivp` (RK45 and DOP853) in a Python loop
-  over epochs, a plain diffrax lock-step loop (`_baselines.py`: epochs in a bounded while loop, as
-  #7 defines it, and in a `lax.while_loop`), and hybridjax's per-execution
+  over epochs, a plain diffrax lock-step loop (`_baselines.py`: epochs in a bounded while loop,
+  and in a `lax.while_loop`), and hybridjax's per-execution
   engine under `jax.vmap` (fast step and diffrax's step), reported as ratios;
 - throughput against the batch size (A, 1 ... 100,000) and against the number of modes and
   guards (a ring of M modes);
@@ -20,7 +20,7 @@ For problems A-D (`problems.py`), all measured in one run on this machine:
 Compile time is reported apart from run time (best of up to 5 runs after a compile run).
 
     python benchmarks/work_precision.py [--quick]   # tables; results/work_precision.json, .png
-    python benchmarks/report.py                     # rewrites the README's generated section
+    python benchmarks/report.py                     # writes the docs' benchmark pages
 """
 
 import argparse
@@ -39,7 +39,7 @@ import hybridjax as hj
 from hybridjax import examples
 from hybridjax._demo import one_device_per_core
 
-one_device_per_core()  # hybridjax splits its batches over the cores, as the README advises
+one_device_per_core()  # hybridjax splits its batches over the cores, as the docs advise
 jax.config.update("jax_enable_x64", True)
 warnings.filterwarnings("ignore", message="rtol=")
 
@@ -168,7 +168,7 @@ def baselines(problem, truths, x0, m0, n_scipy, n_lockstep, ours_per_s, ours_err
         out[f"scipy_{method}"] = dict(exec_per_s=n_scipy / dt, error=err, wrong=wrong, n=n_scipy,
                                       ratio=ours_per_s / (n_scipy / dt))
     xa, ma = jnp.asarray(x0[:n_lockstep]), jnp.asarray(m0[:n_lockstep])
-    # The lock-step loop as #7 defines it (epochs in a bounded loop), then its epochs in a
+    # The lock-step loop (epochs in a bounded loop), then its epochs in a
     # lax.while_loop (forward only).
     for key, loop in (("diffrax_lockstep", "bounded"), ("diffrax_lockstep_lax", "lax")):
         fn = diffrax_lockstep(problem.system, solver=diffrax.Tsit5(), t1=problem.t1,
@@ -190,7 +190,7 @@ def baselines(problem, truths, x0, m0, n_scipy, n_lockstep, ours_per_s, ours_err
         err, wrong = errors(problem, truths[:n_lockstep], res[1], res[0])
         out["closed_form_jax"] = dict(exec_per_s=n_lockstep / run_s, error=err, wrong=wrong, n=n_lockstep,
                                       compile_s=c, ratio=ours_per_s / (n_lockstep / run_s))
-        # The bare hand-written loop of #7's prototype: how fast event-driven integration of this
+        # A bare hand-written loop for this one problem: how fast event-driven integration of this
         # one problem gets in JAX on this machine, with nothing general about it.
         bare = ball_bare_loop()
         c, run_s, res = timed_run(with_constants(lambda x: bare(x, 9.8, 0.8, problem.t1)), xa)

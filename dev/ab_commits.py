@@ -8,9 +8,9 @@ beside the working tree's `hybridjax`, compiles `simulate_batch` of both on the 
 of `--rounds`), and reports the ratio new / base, the compile times, and whether final states,
 step counts, event counts and event times are bitwise identical (else by how much they differ).
 
-    python benchmarks/ab_commits.py HEAD                      # working tree against HEAD
-    python benchmarks/ab_commits.py e5abe04 --problems ball,vdp --rounds 11
-    python benchmarks/ab_commits.py HEAD --block 156          # both at the same block size
+    python dev/ab_commits.py HEAD                      # working tree against HEAD
+    python dev/ab_commits.py <commit> --problems ball,vdp --rounds 11
+    python dev/ab_commits.py HEAD --block 156          # both at the same block size
 
 Problems: ball (A, N = 10,000), ballsave (the same with 201 saved states), vdp (B, N = 1,000),
 vdp10k (B, N = 10,000), thermo (C, N = 2,000). Prints one line per problem; writes nothing (a tool for changes, not a result).
@@ -29,9 +29,11 @@ from pathlib import Path
 import diffrax
 import jax
 import numpy as np
-import problems
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # the benchmark problems
+import problems  # noqa: E402
+
 # name: (problem, example, N, number of save times over [0, t1])
 CASES = {"ball": (problems.ball, "bouncing_ball", 10_000, 0),
          "ballsave": (problems.ball, "bouncing_ball", 10_000, 201),

@@ -21,7 +21,7 @@ from ._status import STATUS_NAMES
 
 def _timed(fn, *inputs, repeat: int = 3):
     """(output, compile seconds, run seconds): the first call less the best of `repeat` more
-    (single runs on a shared 2-core machine moved by up to 2x)."""
+    (single runs on a shared machine vary)."""
     t = time.perf_counter()
     out = jax.block_until_ready(fn(*inputs))
     first = time.perf_counter() - t

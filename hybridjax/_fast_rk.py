@@ -56,9 +56,8 @@ def fold(op, x):
     `jnp` reduction: `sum`, `min`, `all`, `any`). XLA:CPU runs a reduction over a small axis
     slowly: over the outer axis of a (small, N) array several times slower than the same sum
     written out, and over the minor axis of a vmapped (lanes, small) array it calls YNNPACK
-    (jaxlib 0.10), which does not fuse with its inputs (~50-70 us per call at 2,500 lanes, 2
-    components). Written out, the reduction is elementwise and fuses. The order is
-    x_0 op x_1 op ..., left to right."""
+    (jaxlib 0.10), which does not fuse with its inputs. Written out, the reduction is
+    elementwise and fuses. The order is x_0 op x_1 op ..., left to right."""
     if x.shape[0] > 64:
         reduce = {jnp.add: jnp.sum, jnp.minimum: jnp.min, jnp.logical_and: jnp.all, jnp.logical_or: jnp.any}
         return reduce[op](x, axis=0)
@@ -160,9 +159,8 @@ def inverse_root(e, q):
     y^(-q) = e, which needs no division, y <- y (q + 1 - e y^q) / q (quadratic: the error
     eps -> (q + 1) eps^2 / 2), from a first guess read off the exponent bits (the bits of a
     float are a piecewise-linear log2: error < 10 %, so five iterations reach rounding, six
-    for q > 6). XLA:CPU computes `pow` one element at a time (~20 ns per float64); this is
-    elementwise arithmetic it vectorises: the controller's fusion on 10,000 lanes ~200 us ->
-    ~60 us, a quarter of a pure step. Other q: `pow`.
+    for q > 6). XLA:CPU computes `pow` one element at a time; this is
+    elementwise arithmetic it vectorises. Other q: `pow`.
     """
     q_int = int(q) if isinstance(q, (int, float)) and float(q).is_integer() else 0
     if not 1 <= q_int <= 9 or e.dtype not in (jnp.float32, jnp.float64):

@@ -54,8 +54,8 @@ def _sorted_eigs(m: np.ndarray) -> np.ndarray:
 class _ReturnProblem(eqx.Module):
     """Everything the return map depends on besides the state. Module-level functions of it
     (`_residual`, `_return_map`, `_monodromy`) are compiled once per configuration and reused
-    by later calls (closures made in each call were traced and compiled anew: ~20 s per call
-    for the rimless wheel on a 2-core CPU); its arrays are inputs, the rest is the cache key."""
+    by later calls, so a second orbit of the same problem (another slope given as an array)
+    compiles nothing; its arrays are inputs, the rest is the cache key."""
 
     system: HybridSystem
     args: Any

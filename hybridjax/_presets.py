@@ -27,9 +27,9 @@ def accuracy_preset(name: str, dtype: DTypeLike = jnp.float64) -> dict:
     located on its dense output over its long steps, are less accurate than Dopri5's at the
     same tolerance.)
 
-    Their measured cost and error on the benchmark problems are in the README
-    (`benchmarks/work_precision.py`). Use as `hj.simulate(..., **hj.accuracy_preset("fast"))`;
-    pass the dtype of `x0` when it is float32.
+    Their measured cost and error on the benchmark problems are in the documentation's
+    "Work-precision and baselines" page (`benchmarks/work_precision.py`). Use as
+    `hj.simulate(..., **hj.accuracy_preset("fast"))`; pass the dtype of `x0` when it is float32.
     """
     if name not in _PRESETS:
         raise ValueError(f"unknown accuracy preset {name!r}; choose one of {PRESET_NAMES}.")

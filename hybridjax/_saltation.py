@@ -1,8 +1,9 @@
 """Saltation matrices and the variational (state-transition matrix) solver.
 
-Reference: N. J. Kong, J. J. Payne, G. Council, A. M. Johnson, "The Salted Kalman Filter" and
-"Saltation matrices: the essential tool for linearizing hybrid dynamical systems" (Proc. IEEE,
-2024). For a transition (I, J) at (t, x) with guard g, reset R and flows F_I, F_J,
+References: N. J. Kong, J. J. Payne, J. Zhu, A. M. Johnson, "Saltation matrices: the essential
+tool for linearizing hybrid dynamical systems", Proc. IEEE, 2024; N. J. Kong, J. J. Payne,
+G. Council, A. M. Johnson, "The Salted Kalman Filter: Kalman filtering on hybrid dynamical
+systems", Automatica 131, 2021. For a transition (I, J) at (t, x) with guard g, reset R and flows F_I, F_J,
 
     Xi = D_x R + (F_J(t, R(t, x)) - D_x R F_I(t, x) - D_t R) D_x g / (D_t g + D_x g F_I(t, x)).
 

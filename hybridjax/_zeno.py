@@ -1,8 +1,9 @@
 """Zeno detection: event times accumulating geometrically, and the extrapolated limit.
 
-For the bouncing ball the flights shrink as |T_{i+1}| = e |T_i| (the seed's practice problem
-3), so the accumulation time is t_inf = t_n + |T_n| r / (1 - r) with r the ratio of successive
-epoch lengths. An execution is declared Zeno when the last `window` ratios of consecutive
+For the bouncing ball the flights shrink as |T_{i+1}| = e |T_i| (A. M. Johnson, "Hybrid
+Dynamical Systems", Sec. 3.6 and practice problem 3), so the accumulation time is
+t_inf = t_n + |T_n| r / (1 - r) with r the ratio of successive epoch lengths. An execution
+is declared Zeno when the last `window` ratios of consecutive
 epoch lengths are all in (0, max_ratio] and agree with the latest to a relative `ratio_tol`,
 and t_inf <= t1. The limit state is extrapolated per component from the last three
 post-event states, x_inf = x_n + d_n rho / (1 - rho), rho = d_n / d_{n-1}, d_n = x_n - x_{n-1}

@@ -1,10 +1,10 @@
 """Built-in example systems, each with a closed-form solution it is tested against.
 
-- `bouncing_ball`: one mode, one self-transition (the seed's Zeno example).
-- `thermostat`: the seed's practice problem 2, heat / off / cool with hysteresis.
+- `bouncing_ball`: one mode, one self-transition (A. M. Johnson, "Hybrid Dynamical Systems", Sec. 3.6).
+- `thermostat`: the chapter's practice problem 2, heat / off / cool with hysteresis.
 - `wall_particle`: a 4-D flight mode and a 2-D sliding mode (modes of different dimension).
 - `ceiling_ball`: a ball thrown at a ceiling with plastic impact; the reset lands in the
-  interior of the lift-off guard (the seed's "reset into guards", a zero-length epoch).
+  interior of the lift-off guard (the chapter's "reset into guards", Sec. 3.7: a zero-length epoch).
 - `rimless_wheel`, `pendulum_wall`, `truncated_ball`: periodic orbits, a nonlinear impact,
   Zeno truncation.
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
@@ -71,7 +71,9 @@ def zeno_time(h0: float, g: float, e: float) -> float:
 
 
 def thermostat() -> HybridSystem:
-    r"""The seed's HVAC thermostat (practice problem 2), with linear thermal dynamics.
+    r"""An HVAC thermostat with linear thermal dynamics.
+
+    A. M. Johnson, "Hybrid Dynamical Systems", practice problem 2.
 
     Room temperature T obeys dT/dt = a (T_amb - T) + P_mode with P = 0 (off), +P_heat
     (heat), -P_cool (cool). With setpoint s: off -> heat when T <= s - 4, heat -> off when

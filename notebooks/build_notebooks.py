@@ -220,7 +220,7 @@ fig.tight_layout(); plt.show()"""),
   them: at equal tolerance it is *less* accurate than Dopri5 or Tsit5 here, which is why the `precise` preset uses Dopri5.
 - **D (stiff relay)**: only the implicit Kvaerno solvers get anywhere (Tsit5 needs about $10^6 \\times 20 / 3$ steps).
 - Executions whose number of events is wrong appear at loose tolerances on C: an event missed or added changes
-  the whole rest of the execution, so they are counted apart (see the README's tables)."""),
+  the whole rest of the execution, so they are counted apart (see the documentation's Speed versus accuracy pages)."""),
         ("md", """## Against what you would write otherwise
 
 Same problems, same tolerance ($10^{-9}$), same run. hybridjax is `jax.jit(hj.simulate_batch)` (the batched
@@ -245,7 +245,7 @@ core); with the plain loop split over both cores too, about 2x on the ball (`ben
 The plain loop runs as fast with its epochs in a `lax.while_loop` as in the bounded loop reverse mode needs.
 The plain loop does less per step (no interior guard samples or minimum search, no third-order Lie derivatives
 at epoch starts, no Zeno detection, no blocking checks), and it gets away with it here. Where it does not (short
-epochs, grazing, resets into guards, Zeno), see notebook 03 and the README's numerical limits. `bare_loop` is the
+epochs, grazing, resets into guards, Zeno), see notebook 03 and the documentation's Numerical limits page. `bare_loop` is the
 ball alone on a bare hand-written loop (one Tsit5 step per execution per iteration, the guard and reset written in,
 none of those checks and no event record): what an event-driven integrator in JAX reaches here with nothing general,
 on one core. `closed_form_jax` is the ball's closed form jitted over the batch: the speed limit, ahead of all of
@@ -308,7 +308,7 @@ def build(name: str, cells, execute: bool = True) -> float:
         NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}).execute()
     nbformat.write(nb, HERE / f"{name}.ipynb")
     elapsed = time.perf_counter() - t
-    for cell in nb.cells:  # the first figure becomes the README's thumbnail
+    for cell in nb.cells:  # the first figure becomes the notebook's thumbnail
         for out in cell.get("outputs", []):
             if "image/png" in out.get("data", {}):
                 (HERE / "thumbnails").mkdir(exist_ok=True)

@@ -1,5 +1,5 @@
 """Calls outside any transformation: compiled once per configuration and reused
-(`hybridjax._eager`), with the same results and the same errors as before.
+(`hybridjax._eager`), with the same results and the same errors as the plain call.
 
 A flow that counts its traced calls (`helpers.with_trace_counter`) tells whether a call traced
 the problem again; every result is checked against the ball's closed form."""
@@ -78,7 +78,7 @@ def test_a_list_initial_state_is_an_input_not_a_constant():
 def test_an_input_needed_concrete_falls_back_to_the_plain_call():
     # simulate_batch reads a scalar mode0 as a Python integer to pad a short x0 (a wall
     # particle of 1 component in a system of 2): as a traced NumPy array it cannot, and the
-    # call is made as before, with the same result.
+    # plain call runs instead, with the same result.
     sys2 = hj.HybridSystem([hj.Mode("short", lambda t, x, p: jnp.ones_like(x), dim=1),
                             hj.Mode("long", lambda t, x, p: jnp.zeros_like(x), dim=2)], [])
     sol = hj.simulate_batch(sys2, np.array([[0.5], [1.0]]), np.array(0), 0.0, 2.0)

@@ -18,7 +18,7 @@ from hybridjax import examples
 from helpers import BALL, TIGHT, line_system
 
 
-def test_seed_ball_is_zeno_at_the_closed_form_time():
+def test_chapter_ball_is_zeno_at_the_closed_form_time():
     e = 1 / math.sqrt(2)
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 5.0, {"g": 9.8, "e": e},
                       stepsize_controller=TIGHT)
