@@ -20,7 +20,7 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   that needs it is done;
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
-  in every checkpoint (the ball's reverse pass at N = 1,000: 100-144 ms -> 23-31 ms);
+  in every checkpoint;
 - with fewer lanes than executions, a lane whose execution has ended hands in its final
   values and takes the next execution not yet started (`refill_stage`), so the batch stays
   full while executions of different lengths finish.
@@ -109,8 +109,7 @@ class Finals(eqx.Module):
 class LaneRecord(eqx.Module):
     """The events of the executions, in the `Solution`'s own arrays and dtypes (executions
     first), written in place by a scatter per array in iterations with events: the loop's
-    output is the record itself, not a copy (at N = 10,000, max_epochs = 128 the ball ran in
-    75-85 ms against 108-147 ms with one float array sliced into these afterwards)."""
+    output is the record itself, not a copy."""
 
     # (N + 1, E): row N takes the writes of events not kept (`BatchedLoop.jump`); E >= 1
     event_times: jax.Array
@@ -176,15 +175,15 @@ def _rows_any(x):
 def running_count(mask):
     """Inclusive prefix count of `mask` (int32): `jnp.cumsum`'s value by a log-depth scan.
 
-    XLA:CPU lowers `cumsum` to a reduce-window, ~190 us on 10,000 lanes; the scan's log2(N)
-    elementwise levels take ~60 us."""
+    XLA:CPU lowers `cumsum` to a reduce-window, which is slow on wide vectors; the scan's
+    log2(N) elementwise levels are not."""
     return lax.associative_scan(jnp.add, mask.astype(jnp.int32))
 
 
 def first_lanes(mask, size: int, count=None):
     """Indices of the first `size` lanes where `mask` holds, in order, padded with N:
-    `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there,
-    ~200-300 us on 10,000 lanes) as one prefix count and one scatter (~80-140 us). `count`:
+    `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there)
+    as one prefix count and one scatter. `count`:
     `running_count(mask)`, where the caller has it."""
     N = mask.shape[0]
     count = running_count(mask) if count is None else count
@@ -282,8 +281,8 @@ def _detect(g_prev, G_e, D_e, times, pred):
         suspect = suspect | cand[i]
 
     # The estimated minimum on the first candidate's interval alone, from its values picked out
-    # again: materialised for every interval (as before), it cost Van der Pol at N = 10,000
-    # 1.17x the run time; under a `lax.cond` on any candidate, 1.04x (candidates are common there).
+    # again: computed for every interval, or under a `lax.cond` on any candidate, it is slower
+    # (candidates are common).
     def pick(xs):
         out = xs[0]
         for i in range(1, m):
@@ -303,10 +302,8 @@ def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
     y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
     are linear in y0, y1 and the stage increments k_i); computed at trace time, once per
     (solver, thetas, dtype) in a process, by one small function compiled once per solver and
-    dtype (thetas padded to a multiple of `_THETA_PAD`, so that every call shares it): ~0.2 s
-    of the process's first trace. (Evaluated op by op, each primitive compiles on its own:
-    ~1.5 s; under `ensure_compile_time_eval`, each operation on the interpolation's constants
-    did: ~0.5 s.)
+    dtype (thetas padded to a multiple of `_THETA_PAD`, so that every call shares it).
+    (Evaluated op by op, each primitive would compile on its own.)
     """
     return _dense_weights(interpolation_cls, num_stages, tuple(float(t) for t in thetas),
                           jnp.dtype(dtype).name)
@@ -478,11 +475,10 @@ class BatchedLoop:
 
         `idx` (block,): the next `block` lanes where `mask` holds, in order, padded with N
         (spare slots). Passes over blocks repeat, in a while loop of at most N/block passes
-        (of the main loop's kind: checkpointed for reverse mode; a `bounded` loop copied the event
-        record in every pass, 1.3-1.6x slower), until every lane of `mask` is done, so that no
-        lane waits for a later iteration (when lanes beyond the block took their step again in
-        the next iteration instead, that wait added up: the ball at N = 10,000 took 34
-        iterations for at most 21 steps). `fn` is compiled once, for one
+        (of the main loop's kind: checkpointed for reverse mode; a `bounded` loop would copy the
+        event record in every pass), until every lane of `mask` is done, so that no lane waits
+        for a later iteration (lanes beyond the block are done in the same iteration). `fn` is
+        compiled once, for one
         block size; with `small_block`, a second time, for that size, taken (one pass) where all
         of `mask` fits in it. With a block as large as the batch, `idx` is None (every lane is
         computed where it is). `fn` gathers the block's lanes (`_gather_lanes`), updates them on
@@ -529,13 +525,10 @@ class BatchedLoop:
 
         One vmapped call per component, stacked: vmapped whole, the field comes out (N, n) and
         every stage that reads it transposes it inside its fusion (strided reads); per component
-        each output is already a lanes-last vector. The pure step on 10,000 lanes: 42 -> 34 ms
-        (oscillator, 77 steps, in one process; identical values). Each component is cut from
-        each mode's field before the modes' selection (`Kernels.flow_component`): selected
-        whole, XLA kept the (N, n) field: Van der Pol at N = 10,000 0.86x the run time.
-        Above PER_COMPONENT_MAX_DIM components the field is traced once, as before, to keep
-        the trace small; with one component it is the field itself (the thermostat ran 1.15x
-        slower through `flow_component`).
+        each output is already a lanes-last vector. Each component is cut from each mode's
+        field before the modes' selection (`Kernels.flow_component`): selected whole, XLA
+        keeps the (N, n) field. Above PER_COMPONENT_MAX_DIM components the field is traced
+        once, to keep the trace small; with one component it is the field itself.
         """
         if self.kern.n == 1 or self.kern.n > PER_COMPONENT_MAX_DIM:
             F = self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
@@ -804,7 +797,7 @@ class BatchedLoop:
             f0 = self.flows(st.mode, t, y, args)
         ks, z, f_last = [f0 * hh], y, f0
         # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i apart,
-        # XLA computed each stage twice, in two fusions (Van der Pol at N = 10,000: 0.95x).
+        # XLA computes each stage twice, in two fusions.
         last = len(solver.c) - 1
         for i, (c_i, a_i) in enumerate(zip(solver.c, solver.a, strict=True)):
             z = y + weighted_sum(a_i, ks, y)

@@ -1,11 +1,12 @@
 """Event logic: the epoch-start test, crossing detection on a step, and root location.
 
-- Start of an epoch (API semantics 3): transition k fires at once when g_k < -band, or when
-  |g_k| <= band and g_k is *trending negative*: its first non-zero Lie derivative along the
-  flow is negative (seed eq. (7)). A guard inside the band that is not trending negative is
-  *departing*: it is disarmed (its previous value is taken as 0) until the flow has been seen
-  to leave it (g > 0), so that a bouncing ball does not re-fire after its reset.
-- Within a step (API semantics 2): each guard is sampled on the step's dense interpolant at
+- Start of an epoch (execution rule 3, docs: Execution semantics): transition k fires at
+  once when g_k < -band, or when |g_k| <= band and g_k is *trending negative*: its first
+  non-zero Lie derivative along the flow is negative (A. M. Johnson, "Hybrid Dynamical
+  Systems", eq. (7)). A guard inside the band that is not trending negative is *departing*:
+  it is disarmed (its previous value is taken as 0) until the flow has been seen to leave it
+  (g > 0), so that a bouncing ball does not re-fire after its reset.
+- Within a step (execution rule 2): each guard is sampled on the step's dense interpolant at
   `interior_points` interior points and the end; a crossing is the first sample with g <= 0
   after a sample with g > 0, so a guard that dips below zero and comes back inside one step
   is caught (as DifferentialEquations.jl's `interp_points`). Between two samples, g may still
@@ -60,8 +61,8 @@ def first_step(initial, proposed, carry: bool):
     epoch (`proposed` > 0: the step size the controller proposed after the step that ended
     the previous epoch) starts with that proposal, as DifferentialEquations.jl keeps its step
     size across a callback: Hairer's rule does not know the scale the solve has already
-    found and at tight tolerances starts far below it (the bouncing ball at 1e-9: ~4 ms
-    against ~0.1 s; 19 steps per execution against 12 on benchmark problem A). If the reset
+    found and at tight tolerances starts far below it, which costs several more steps per
+    epoch. If the reset
     has changed the scale, the controller rejects and shrinks the step as it would anywhere:
     an explicit step across a transient faster than itself is unstable, its error estimate
     large. An implicit step across one is stable and can be accepted while its dense output
@@ -134,7 +135,7 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
         # One probe, on the side of x where the root lies (a probe on the other side moves the
         # bracket only if f changes sign twice within delta). The two points are written out,
         # not stacked: elementwise code that XLA fuses into a few kernels per iteration (a stack
-        # and a reduction over it cost ~10x more under vmap).
+        # and a reduction over it do not fuse under vmap).
         probe = jnp.clip(jnp.where(fx > 0, x + delta, x - delta), a, b)
         a_new, b_new = a, b
         for p, fp in ((x, fx), (probe, f(probe))):
