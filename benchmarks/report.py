@@ -439,9 +439,62 @@ def _plot_grazing(res: dict) -> str:
     return _save(fig, "grazing.png")
 
 
+def derivative_accuracy(res: dict) -> list[str]:
+    pb = res["problem"]
+    out = _page("derivative_accuracy", "Derivative accuracy, measured", res, "derivative_accuracy.py",
+                f"The leaky integrate-and-fire neuron V' = (I - V) / tau, spike at V = 1, reset to 0 (I = {pb['I']}, "
+                f"tau = {pb['tau']}, {pb['solver']}), through its first {pb['spikes']} spikes: the error of each "
+                "spike time's derivative against the closed form \\(d t_k / d I = k \\tau (1/I - 1/(I-1))\\), "
+                "\\(d t_k / d \\tau = k \\ln(I/(I-1))\\). *max error / k* is the largest error of the k-th "
+                "derivative divided by k over k = 1 ... 100; *growth* is the slope of log(error) against log k "
+                "over k = 10 ... 100 (1: linear in the event count, 2: quadratic). The finite difference is "
+                f"central, of the simulated spike times, with relative step {pb['fd_relative_step']:.0e}. What the "
+                "figures mean is explained in [How accurate are the derivatives](../derivative_accuracy.md).")
+    methods = [m for m in res["results"][0]["errors"] if m != "times"]
+    label = {"reverse": "reverse mode, `simulate`", "forward": "forward mode, `simulate`",
+             "batch_reverse": "reverse mode, `simulate_batch`", "finite_difference": "finite difference"}
+
+    def name(m: str) -> str:
+        method, wrt = m.split(" ")
+        return f"{label.get(method, method)}, {wrt.replace('d/d', 'd t_k / d ')}"
+
+    def cell(r: dict, m: str) -> str:
+        err = r["max_error_per_event"][m]
+        # An error at rounding level has no growth worth quoting.
+        growth = "rounding" if err < 1e-14 else f"k^{r['growth'][m]:.2f}"
+        return f"{err:.1e} ({growth})"
+
+    rows = [["spike times", *(cell(r, "times") for r in res["results"])]]
+    rows += [[name(m), *(cell(r, m) for r in res["results"])] for m in methods]
+    out += ["## Error per event and its growth", "",
+            *_table(["max error / k (growth)", *(f"tol {r['tol']:.0e}" for r in res["results"])], rows),
+            f"![Derivative error against spike index]({_plot_derivative_accuracy(res)})", ""]
+    return out
+
+
+def _plot_derivative_accuracy(res: dict) -> str:
+    import numpy as np
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
+    for ax, wrt in zip(axes, ("I", "tau"), strict=True):
+        for r, color in zip(res["results"], plt.cm.viridis(np.linspace(0, 0.85, len(res["results"]))), strict=True):
+            k = np.arange(1, len(r["errors"]["times"]) + 1)
+            ax.loglog(k, np.abs(r["errors"][f"reverse d/d{wrt}"]) + 1e-17, "-", color=color,
+                      label=f"AD, tol {r['tol']:.0e}")
+            ax.loglog(k, np.abs(r["errors"][f"finite_difference d/d{wrt}"]) + 1e-17, ":", color=color,
+                      label=f"finite difference, tol {r['tol']:.0e}")
+        ax.set(xlabel="spike k", title=f"|error of d t_k / d {'tau' if wrt == 'tau' else 'I'}|")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("absolute error")
+    axes[1].legend(fontsize=7, ncol=2)
+    return _save(fig, "derivative_accuracy.png")
+
+
 PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": block_size,
          "guard_cost": guard_cost, "gradient_cost": gradient_cost, "compile_time": compile_time,
-         "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits}
+         "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits,
+         "derivative_accuracy": derivative_accuracy}
 
 
 def main():
