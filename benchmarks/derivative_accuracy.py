@@ -40,13 +40,6 @@ I0, TAU = 1.5, 0.02
 FD_STEP = 1e-4
 
 
-def lif() -> hj.HybridSystem:
-    sub = hj.Mode("sub", lambda t, x, p: (p["I"] - x) / p["tau"], dim=1)
-    spike = hj.Transition("sub", "sub", guard=lambda t, x, p: 1.0 - x[0],
-                          reset=lambda t, x, p: jnp.zeros_like(x), name="spike")
-    return hj.HybridSystem([sub], [spike])
-
-
 def closed_form(current: float, tau: float) -> tuple[np.ndarray, dict]:
     """Spike times and their derivatives in I and tau."""
     k = np.arange(1, SPIKES + 1)
@@ -62,7 +55,7 @@ def growth_exponent(err: np.ndarray, k_from: int = 10) -> float:
 
 
 def measure(tol: float) -> dict:
-    system = lif()
+    system = hj.examples.integrate_and_fire()
     t1 = (SPIKES + 0.5) * TAU * np.log(I0 / (I0 - 1))
     opts = dict(stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_epochs=SPIKES + 8,
                 zeno=False, max_steps=64 * 4096)
@@ -70,8 +63,8 @@ def measure(tol: float) -> dict:
     def times(p, adjoint, engine="simulate"):
         args = {"I": p[0], "tau": p[1]}
         if engine == "simulate":
-            return hj.simulate(system, jnp.zeros(1), "sub", 0.0, t1, args, adjoint=adjoint, **opts).event_times[:SPIKES]
-        return hj.simulate_batch(system, jnp.zeros((1, 1)), "sub", 0.0, t1, args, adjoint=adjoint,
+            return hj.simulate(system, jnp.zeros(1), "subthreshold", 0.0, t1, args, adjoint=adjoint, **opts).event_times[:SPIKES]
+        return hj.simulate_batch(system, jnp.zeros((1, 1)), "subthreshold", 0.0, t1, args, adjoint=adjoint,
                                  **opts).event_times[0, :SPIKES]
 
     rev, fwd = diffrax.RecursiveCheckpointAdjoint(), diffrax.ForwardMode()

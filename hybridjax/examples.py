@@ -8,6 +8,7 @@
 - `rimless_wheel`, `pendulum_wall`, `truncated_ball`: periodic orbits, a nonlinear impact,
   Zeno truncation.
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
+- `integrate_and_fire`: a leaky integrate-and-fire neuron, a long spike train in closed form.
 
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
@@ -345,3 +346,31 @@ def van_der_pol_relay() -> HybridSystem:
         Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
         Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
     ])
+
+
+# ----------------------------------------------------------------------------- neuron
+
+
+def integrate_and_fire() -> HybridSystem:
+    r"""A leaky integrate-and-fire neuron driven by a constant current.
+
+    Membrane potential x = (V,); flow V' = (I - V) / tau; a spike when V reaches 1 (guard
+    1 - V), which resets V to 0. `args = {"I": ..., "tau": ...}`; it spikes periodically when
+    I > 1 (`integrate_and_fire_closed_form`).
+    """
+    sub = Mode("subthreshold", lambda t, x, p: (p["I"] - x) / p["tau"], dim=1)
+    spike = Transition("subthreshold", "subthreshold", guard=lambda t, x, p: 1.0 - x[0],
+                       reset=lambda t, x, p: jnp.zeros_like(x), name="spike")
+    return HybridSystem([sub], [spike])
+
+
+def integrate_and_fire_closed_form(current, tau, V0, num_spikes: int):
+    """The first `num_spikes` spike times of `integrate_and_fire` from V(0) = V0 < 1, with
+    current I > 1.
+
+    V(t) = I + (V0 - I) e^{-t / tau} reaches 1 at t_1 = tau ln((I - V0) / (I - 1)); from the
+    reset, every period is T = tau ln(I / (I - 1)), so t_k = t_1 + (k - 1) T. Written with
+    `jax.numpy`, so that differentiating it gives the exact derivatives of the spike times.
+    """
+    first = tau * jnp.log((current - V0) / (current - 1.0))
+    return first + jnp.arange(num_spikes) * tau * jnp.log(current / (current - 1.0))

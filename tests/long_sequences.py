@@ -34,20 +34,6 @@ class Problem(NamedTuple):
     x0_params: tuple  # indices of p that are components of x0, in order
 
 
-# --- leaky integrate-and-fire neuron: V' = (I - V) / tau, spike at V = 1, reset to 0.
-def _lif_system():
-    sub = hj.Mode("sub", lambda t, x, p: (p["I"] - x) / p["tau"], dim=1)
-    spike = hj.Transition("sub", "sub", guard=lambda t, x, p: 1.0 - x[0],
-                          reset=lambda t, x, p: jnp.zeros_like(x), name="spike")
-    return hj.HybridSystem([sub], [spike])
-
-
-def _lif_closed(p, n):
-    I, tau, V0 = p
-    first = tau * jnp.log((I - V0) / (I - 1.0))
-    return first + jnp.arange(n) * tau * jnp.log(I / (I - 1.0))
-
-
 # --- ball bouncing on a floor: impacts at t_1 = (v0 + W) / g, then flights 2 e^j W / g.
 def _ball_closed(p, n):
     h0, v0, e, g = p
@@ -95,9 +81,9 @@ def _midway(times) -> float:
 LIF_PERIOD = 0.02 * np.log(3.0)
 THERMO_P0 = np.array([0.5, 10.0, 10.0, 20.0, 19.0])
 PROBLEMS = {
-    "lif": Problem(_lif_system(), "sub", 100.5 * LIF_PERIOD, 100, np.array([1.5, 0.02, 0.0]),
+    "lif": Problem(examples.integrate_and_fire(), "subthreshold", 100.5 * LIF_PERIOD, 100, np.array([1.5, 0.02, 0.0]),
                    ("I", "tau", "V0"), lambda p: (p[2:3], {"I": p[0], "tau": p[1]}),
-                   lambda p: _lif_closed(p, 100), (2,)),
+                   lambda p: examples.integrate_and_fire_closed_form(*p, 100), (2,)),
     "ball": Problem(examples.bouncing_ball(), "flight", _midway(_ball_closed(np.array([1.0, 0.0, 0.9, 9.8]), 31)),
                     30, np.array([1.0, 0.0, 0.9, 9.8]), ("h0", "v0", "e", "g"),
                     lambda p: (p[:2], {"e": p[2], "g": p[3]}), lambda p: _ball_closed(p, 30), (0, 1)),
