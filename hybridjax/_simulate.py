@@ -18,6 +18,12 @@ from ._loop import Loop
 from ._solution import Solution
 from ._status import Status
 from ._system import HybridSystem, as_mode_index
+from ._transforms import (
+    adjoint_for,
+    derivative_modes,
+    naming_the_forward_mode_fix,
+    warn_if_forward_mode_beneath,
+)
 from ._validation import check_time_span
 
 
@@ -195,6 +201,8 @@ def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, 
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
     system.check(promote_args(args, dtype), dtype)
+    adjoint = adjoint_for(adjoint, derivative_modes())
+    warn_if_forward_mode_beneath(adjoint, "A hybridjax simulation")
     kind, checkpoints = _loop_kind(adjoint)
     controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
     solver = _prepare_solver(solver, controller, kind)
@@ -245,15 +253,21 @@ def simulate(
     order. See `Solution` for what comes back.
 
     Pure in its array arguments: `jax.jit`, `jax.vmap` over `x0`, `mode0`, `args`, `t0`,
-    `t1`; `jax.grad`/`jax.jacrev` (default `adjoint`) and `jax.jacfwd`
-    (`adjoint=diffrax.ForwardMode()`) with respect to `x0`, `args`, `t0`, `t1`.
+    `t1`; `jax.grad`/`jax.jacrev` (reverse mode) and `jax.jvp`/`jax.jacfwd` (forward mode)
+    with respect to `x0`, `args`, `t0`, `t1`. Forward mode runs with
+    `adjoint=diffrax.ForwardMode()`, which the call chooses itself in place of the default
+    (reverse-mode) adjoint where it sees the `jax.jvp` (the JVP taken at or inside the call's
+    `jax.jit`); a `jax.jvp` taken outside a `jax.jit` made around the call cannot be seen from
+    it: pass `adjoint=diffrax.ForwardMode()` there (a warning says so).
 
-    Called outside any transformation (as in a notebook), the call is compiled once and the
-    program kept (`eqx.filter_jit`): a later call with arrays of the same shapes and dtypes
-    and equal other arguments runs it at once. Python numbers (in `args`, `t0`, `t1`, the
-    options) are constants of the program, so a changed one compiles a new program: pass a
-    parameter you vary as an array (`jnp.asarray(0.8)`). Inside `jax.jit`, `jax.vmap` or a
-    derivative the call is traced with its caller, as any JAX function.
+    Called outside `jax.jit` (as in a notebook), also under `jax.grad`, `jax.jvp`,
+    `jax.jacfwd`, `jax.jacrev`, `jax.vmap` and their compositions, the call is compiled once
+    and the program kept (`eqx.filter_jit`, which JAX differentiates and batches): a later call
+    with arrays of the same shapes and dtypes, equal other arguments and the same
+    transformations runs it at once, so a loop of `jax.grad` steps compiles once. Python numbers
+    (in `args`, `t0`, `t1`, the options) are constants of the program, so a changed one
+    compiles a new program: pass a parameter you vary as an array (`jnp.asarray(0.8)`). Inside
+    `jax.jit` the call is traced with its caller, as any JAX function.
 
     **Arguments:**
 
@@ -294,8 +308,9 @@ def simulate(
       (relative), and the extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is
       <= t1, the execution stops with `ZENO` (`sol.zeno_time`, `sol.zeno_state`), or jumps to
       the limit through the mode's `ZenoCompletion` and continues.
-    - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode), `ForwardMode()`
-      (forward mode) or `DirectAdjoint()` (both): selects the kind of while loop.
+    - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode; replaced by
+      `ForwardMode()` under `jax.jvp`/`jax.jacfwd` alone), `ForwardMode()` (forward mode) or
+      `DirectAdjoint()` (both): selects the kind of while loop.
     - `engine`: how each step is computed. `"diffrax"`: diffrax's own `solver.step` and
       `stepsize_controller.adapt_step_size`. `"fast"`: the same step from the solver's Butcher
       tableau with the stages unrolled, and the same I-controller rule written out (requires
@@ -349,7 +364,8 @@ def simulate(
         checkpoints=checkpoints,
         dtype=dtype,
     )
-    st, rec = loop.run(t0, y0, m0)
+    with naming_the_forward_mode_fix():
+        st, rec = loop.run(t0, y0, m0)
     final_time = st.t
     if throw:
         final_time = st.status.error_if(final_time, st.status != Status.T1_REACHED)

@@ -16,6 +16,7 @@ from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_con
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
 from ._system import HybridSystem
+from ._transforms import compiled_call_modes, naming_the_forward_mode_fix
 from ._validation import check_time_span
 
 
@@ -43,7 +44,11 @@ def carries_derivatives(tree) -> bool:
     `jax.linearize`, under any other transformations): a JAX tracer of automatic
     differentiation, looked for through the tracers that wrap it (`vmap`'s, `jit`'s). A
     heuristic for a default, not a guarantee: a derivative that enters only through a
-    closure (a flow that captures a traced parameter) is not seen."""
+    closure (a flow that captures a traced parameter) is not seen. Inside the program that
+    `hybridjax._eager` compiles for a call, whose leaves are that program's tracers: whether
+    a derivative trace was active at the call."""
+    if compiled_call_modes():
+        return True
     for leaf in jtu.tree_leaves(tree):
         x, depth = leaf, 0
         while isinstance(x, jax.core.Tracer) and depth < 64:
@@ -162,10 +167,11 @@ def simulate_batch(
       parameter) is not seen, and fails in equinox's closure conversion: pass `devices=1`.
       Inside your own `jax.pmap` / `jax.shard_map`, pass `devices=1` too.
 
-    Differentiable like `simulate` (`jax.grad`, `jax.jacrev` with the default `adjoint`,
-    `jax.jacfwd` with `diffrax.ForwardMode()`), with respect to `x0`, `args`, `t0`, `t1`.
-    Called outside any transformation, compiled once and reused like `simulate` (Python
-    numbers are constants of the program; pass a parameter you vary as an array).
+    Differentiable like `simulate` (`jax.grad`, `jax.jacrev`; `jax.jvp`, `jax.jacfwd` with
+    `diffrax.ForwardMode()`, chosen by the call where it sees the JVP), with respect to `x0`,
+    `args`, `t0`, `t1`. Called outside `jax.jit`, also under `jax.grad`, `jax.jvp`,
+    `jax.vmap`, ..., compiled once and reused like `simulate` (Python numbers are constants of
+    the program; pass a parameter you vary as an array).
 
     !!! Example
 
@@ -230,7 +236,7 @@ def simulate_batch(
     # Reverse mode through `jax.shard_map` fails inside equinox's checkpointed loop: its closure
     # conversion compares the inputs' sharding metadata, which shard_map changes (equinox
     # 0.13.8; upstream: patrick-kidger/equinox#1261, diffrax#765). It runs on one device.
-    reverse = differentiated and not isinstance(adjoint, diffrax.ForwardMode)
+    reverse = differentiated and kind == "checkpointed"
     devs = _devices(devices, N)[:1 if reverse else None]
     D = len(devs)
     per_device = -(-N // D)  # executions per device (the last ones padded by repeating the last)
@@ -268,10 +274,11 @@ def simulate_batch(
                     num_steps=final.num_steps, num_rejected=final.num_rejected)
 
     part_args = args if args_batched else None
-    if D == 1:
-        out = solve(t0, y0, m0, t1, part_args, shared_arrays)
-    else:
-        out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
+    with naming_the_forward_mode_fix():
+        if D == 1:
+            out = solve(t0, y0, m0, t1, part_args, shared_arrays)
+        else:
+            out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
     status = out.pop("status")

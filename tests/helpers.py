@@ -44,6 +44,23 @@ def with_trace_counter(system):
     return eqx.tree_at(lambda s: s.modes, system, tuple(modes)), calls
 
 
+_COMPILES = [0]
+
+
+def _count_compile(event: str, duration_secs: float, **kwargs) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _COMPILES[0] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compile)
+
+
+def compile_count() -> int:
+    """XLA compilations in this process so far (JAX's monitoring event of each backend compile,
+    which a program found in a cache does not record)."""
+    return _COMPILES[0]
+
+
 def tree_allclose(a, b, rtol=1e-8, atol=1e-8) -> bool:
     leaves = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
         lambda x, y: np.allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol), a, b))

@@ -1,9 +1,11 @@
-"""Calls outside any transformation: compiled once per configuration and reused
-(`hybridjax._eager`), with the same results and the same errors as the plain call.
+"""Calls outside `jax.jit` (also under `jax.grad`, `jax.jvp`, `jax.vmap`, ...): compiled once per
+configuration and reused (`hybridjax._eager`), with the same results and the same errors as the
+plain call.
 
 A flow that counts its traced calls (`helpers.with_trace_counter`) tells whether a call traced
 the problem again; every result is checked against the ball's closed form."""
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 
 import hybridjax as hj
 
-from helpers import TIGHT, ball_reference, with_trace_counter
+from helpers import TIGHT, ball_reference, central_difference, compile_count, with_trace_counter
 
 
 def counting_ball():
@@ -93,13 +95,78 @@ def test_t1_before_t0_as_arrays_is_still_refused_at_the_call(name):
         fn(system, STATES[name][0], "flight", np.asarray(1.0), jnp.asarray(0.5), {"g": 9.8, "e": 0.8})
 
 
-def test_calls_inside_a_transformation_compile_with_their_caller():
-    # Under jax.grad the call is traced with the gradient; the derivative of the final height
-    # with respect to h0 before the first impact is 1 (free fall).
+def test_calls_inside_jit_compile_with_their_caller():
+    # Inside jax.jit the call is traced with its caller's program; the derivative of the final
+    # height with respect to h0 before the first impact is 1 (free fall).
     system, _ = counting_ball()
 
     def height(h0):
         return hj.simulate(system, jnp.array([h0, 0.0]), "flight", 0.0, 0.2, {"g": 9.8, "e": 0.8},
                            stepsize_controller=TIGHT, max_epochs=4).final_state[0]
 
-    assert abs(float(jax.grad(height)(1.0)) - 1.0) < 1e-9
+    assert abs(float(jax.jit(jax.grad(height))(1.0)) - 1.0) < 1e-9
+
+
+# Calls under jax.grad, jax.jvp, jax.jacfwd and jax.vmap made outside jax.jit: one counted ball,
+# g and e as arrays, t1 = 1.5 (three impacts from h0 = 1, two from (0.7, 0.4)).
+COUNTED, COUNTED_TRACES = counting_ball()
+ARRAY_ARGS = {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+TANGENT = jnp.array([0.3, -1.0])
+
+
+def final_state(x0, adjoint=diffrax.RecursiveCheckpointAdjoint()):
+    return hj.simulate(COUNTED, x0, "flight", 0.0, 1.5, ARRAY_ARGS, stepsize_controller=TIGHT,
+                       max_epochs=16, adjoint=adjoint).final_state
+
+
+def closed_form_jacobian(x0):
+    """d final_state / d x0 by central differences of the closed form."""
+    return central_difference(lambda x: ball_reference(x[0], x[1], 9.8, 0.8, 1.5)["final_state"], x0)
+
+
+TRANSFORMED = {
+    # name: (the call, its value from the closed form)
+    "grad": (lambda x0: jax.grad(lambda x: final_state(x)[0])(x0), lambda x0: closed_form_jacobian(x0)[0]),
+    "jvp, ForwardMode": (
+        lambda x0: jax.jvp(lambda x: final_state(x, diffrax.ForwardMode()), (x0,), (TANGENT,))[1],
+        lambda x0: closed_form_jacobian(x0) @ np.asarray(TANGENT)),
+    "jacfwd, default adjoint": (jax.jacfwd(final_state), closed_form_jacobian),
+    "vmap": (lambda x0: jax.vmap(final_state)(jnp.stack([x0, x0 + 0.2])),
+             lambda x0: expected(np.stack([x0, x0 + 0.2]), 9.8, 0.8, 1.5)),
+}
+
+
+@pytest.mark.parametrize("name", TRANSFORMED)
+def test_a_repeated_call_under_a_transformation_compiles_nothing(name):
+    # JAX transforms the compiled call and keeps what it compiles: a second call with new
+    # values neither traces the problem again nor compiles anything.
+    run, truth = TRANSFORMED[name]
+    first, second = jnp.array([1.0, 0.0]), jnp.array([0.7, 0.4])
+    # 1e-6: central differences of the closed form are accurate to ~1e-8, the runs to ~1e-9
+    np.testing.assert_allclose(run(first), truth(np.asarray(first)), rtol=1e-6, atol=1e-6)
+    compiled, traced = compile_count(), len(COUNTED_TRACES)
+    got = run(second)
+    assert (compile_count() - compiled, len(COUNTED_TRACES) - traced) == (0, 0)
+    np.testing.assert_allclose(got, truth(np.asarray(second)), rtol=1e-6, atol=1e-6)
+
+
+def test_forward_mode_with_the_default_adjoint_runs_the_forward_mode_program():
+    # Under jax.jvp the default adjoint (a jax.custom_vjp loop, reverse mode only) is replaced
+    # by diffrax.ForwardMode(): the same compiled program as with that adjoint passed.
+    x0 = jnp.array([0.9, 0.1])
+    explicit = jax.jvp(lambda x: final_state(x, diffrax.ForwardMode()), (x0,), (TANGENT,))[1]
+    compiled = compile_count()
+    default = jax.jvp(final_state, (x0 + 0.1,), (TANGENT,))[1]
+    assert compile_count() == compiled
+    for x, got in ((x0, explicit), (x0 + 0.1, default)):
+        np.testing.assert_allclose(got, closed_form_jacobian(np.asarray(x)) @ np.asarray(TANGENT),
+                                   rtol=1e-6, atol=1e-6)
+
+
+def test_forward_mode_through_a_jit_of_the_default_adjoint_names_the_fix():
+    # jax.jvp of a jax.jit made around the call: the program the jit records is reused by JAX
+    # under any transformation, so it keeps the reverse-mode loop, and JAX's jvp of it fails;
+    # a warning at the call names the fix.
+    with pytest.warns(UserWarning, match=r"adjoint=diffrax\.ForwardMode\(\)"):
+        with pytest.raises(TypeError, match="custom_vjp"):
+            jax.jvp(jax.jit(final_state), (jnp.array([1.0, 0.0]),), (TANGENT,))
