@@ -316,7 +316,7 @@ def simulate(
       tableau with the stages unrolled, and the same I-controller rule written out (requires
       one of Heun, Midpoint, Ralston, Bosh3, Tsit5, Dopri5, Dopri8 and a
       `PIDController` with default coefficients and no dtmin/dtmax/step_ts/jump_ts); the
-      same steps to rounding, 1.1-1.5x faster under `vmap` (benchmarks/work_precision.py).
+      same steps to rounding, faster under `vmap` (the docs' Work-precision page).
       `"auto"` (default): `"fast"` where it applies, `"diffrax"` otherwise.
     - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
 

@@ -127,31 +127,27 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine (yet): Zeno completions, implicit solvers, PID coefficients,
+      Not on the batched engine: Zeno completions, implicit solvers, PID coefficients,
       `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
       `jax.grad`, `jax.jvp` or another derivative is being taken through the call with the
-      default `adjoint` or `ForwardMode`: the reverse pass compiles in half the time, the
-      forward-mode one runs in 0.75-0.86x). Results do not depend on it; speed does: a block
-      too large computes the work for slots no execution needs where few executions have an
-      event in a step, one too small takes many passes where many do. In one process
-      (`benchmarks/block_size.py`, 2-core CPU, one device, Tsit5, 1e-9), run time against the
-      default: Van der Pol relay at N = 10,000 (few events per step) N/64 0.93x, N/16 1.10x,
-      N/4 1.93x; bouncing ball at N = 10,000 (events dense) N/64 1.10x, N/16 1.01x, N/4
-      1.17x, N 1.29x; thermostat at N = 2,000 N/64 1.10x, N/16 1.14x, N/4 1.00x, N 1.88x.
-      `block=(small, large)` (`large` None: the default) compiles the rare work for both sizes
-      and takes the small block (one pass) in iterations where it holds every execution that
-      needs the work, for a second compilation of it (+3 to +6 s on a 2-core CPU; (N/64, N/32):
-      Van der Pol 1.21x, ball 1.10x, thermostat 1.06x).
+      default `adjoint` or `ForwardMode`: the reverse pass compiles in about half the time and
+      the forward-mode one runs faster). Results do not depend on it; speed does: a block too
+      large computes the work for slots no execution needs where few executions have an event
+      in a step, one too small takes many passes where many do (the docs' Block size page
+      measures it, from `benchmarks/block_size.py`). `block=(small, large)` (`large` None: the
+      default) compiles the rare work for both sizes and takes the small block (one pass) in
+      iterations where it holds every execution that needs the work, for a second compilation
+      of it.
     - `lanes`: how many executions advance together (default: all N up to 20,000, else
       10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
       that a Monte Carlo batch keeps every lane busy while its executions take different
       numbers of steps, and the loop's arrays are `lanes` wide whatever N is. Results do not
-      depend on it; speed does (the bouncing ball at N = 100,000 on a 2-core CPU: 10,000
-      lanes 1.3-1.6x faster than 100,000; at N = 10,000 to 30,000 no measurable change).
+      depend on it; speed does (fewer lanes than executions help large batches, whose
+      executions end at different times).
       With several devices, `lanes` is the total, split evenly between them.
     - `devices`: the devices the executions are split over, in equal parts (`jax.shard_map`
       over a one-axis mesh; the last part padded by repeating the last execution, the padding
@@ -159,8 +155,7 @@ def simulate_batch(
       that many, or a list of devices. Results do not depend on it beyond rounding. JAX gives a
       CPU one device unless told otherwise: to use every core, call
       `jax.config.update("jax_num_cpu_devices", os.cpu_count())` right after `import jax`.
-      On a 2-core CPU (Tsit5, 1e-9) two devices run the bouncing ball at N = 10,000 2.1x and
-      Van der Pol at N = 10,000 2.1x faster than one (no gain at N = 1,000 for the ball).
+      The gain depends on the work per device (the docs' Per core page measures it).
       A reverse-mode derivative (`jax.grad` through the call, default `adjoint`) runs on one
       device; `diffrax.ForwardMode()` derivatives are split like the values. A reverse-mode
       derivative that reaches the call only through a closure (a flow capturing a traced
@@ -246,9 +241,8 @@ def simulate_batch(
         num_lanes = per_device if per_device <= 20_000 else 10_000
     if block is None and differentiated:
         # Under reverse mode, passes over blocks are a checkpointed loop nested in the main
-        # one: the reverse pass compiles about twice as long (ball, N = 1,000: 57 s against
-        # 26 s) and runs in 0.8-2x the time of every lane; under forward mode, one pass over
-        # every lane runs in 0.75-0.86x the time of the passes and compiles in 0.8x
+        # one: the reverse pass compiles about twice as long as with every lane as the block;
+        # under forward mode, one pass over every lane also runs and compiles faster
         # (benchmarks/gradient_cost.py).
         block = num_lanes
     # Everything the loop reads besides the executions' own rows: passed to each device whole.
