@@ -644,8 +644,11 @@ def event_point(kern, eps, mode, k, t_star, interp, args):
     ill-conditioned.
     """
     t_s = interp.t0
-    t_at = t_s + sg(t_star - t_s)  # the value t*, the derivative of the step's start
-    x_star = interp.evaluate(t_at)  # (t_at - t_s) / h: no derivative, u* held fixed
+    t_at = t_s + sg(t_star - t_s)  # the value t* (to rounding), the derivative of the step's start
+    # The dense output at the fixed elapsed time u* for the derivative ((t_at - t_s) / h has
+    # none), and at t* itself for the value: t_s + (t* - t_s) can round to a neighbour of t*.
+    x_at = interp.evaluate(t_at)
+    x_star = sg(interp.evaluate(t_star)) + (x_at - sg(x_at))
     F = kern.flow(mode, t_at, x_star, args)
 
     def g(tt, xx):

@@ -283,7 +283,10 @@ def test_float32_ball_reaches_its_zeno_point(tol):
     n = int(sol.num_events)
     ref = examples.bouncing_ball_closed_form(1.0, 0.0, 9.8, 0.8, 5.0)
     np.testing.assert_allclose(sol.event_times[:n], ref["event_times"][:n], rtol=2e-5)
-    np.testing.assert_allclose(sol.zeno_time, examples.zeno_time(1.0, 9.8, 0.8), rtol=1e-5)
+    # t_inf = t_n + T_n r / (1 - r) is extrapolated from the last epoch lengths: with r = 0.8 an
+    # error of one float32 event time (located to event_tol, ~1e-6 of its step) is amplified
+    # up to 1 / (1 - r)^2 = 25 times in the ratio's term.
+    np.testing.assert_allclose(sol.zeno_time, examples.zeno_time(1.0, 9.8, 0.8), rtol=1e-4)
 
 
 def test_float32_with_an_unreachable_tolerance_warns_and_ends_with_a_status():
