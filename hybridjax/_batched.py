@@ -49,7 +49,9 @@ from ._events import (
     first_step,
     locate_minimum,
     locate_root,
+    nonfinite_step,
     start_decision,
+    strictly_inside,
 )
 from ._fast_rk import fold as _fold
 from ._fast_rk import inverse_root, weighted_sum
@@ -117,6 +119,7 @@ class LaneRecord(eqx.Module):
     epoch_modes: jax.Array  # (N + 1, E + 1) int32, column 0 the initial mode
     simultaneous: jax.Array  # bool
     grazing: jax.Array  # bool
+    inside_guard: jax.Array  # bool
     states_before: jax.Array  # (N + 1, E, n)
     states_after: jax.Array  # (N + 1, E, n)
     ys: jax.Array  # (N, S, n) saved states
@@ -138,7 +141,8 @@ class LaneRecord(eqx.Module):
         """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
         column), where writes that are not kept land (see `BatchedLoop.jump`)."""
         out = {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
-        for f in ("event_times", "transitions", "simultaneous", "grazing", "states_before", "states_after"):
+        for f in ("event_times", "transitions", "simultaneous", "grazing", "inside_guard", "states_before",
+                  "states_after"):
             out[f] = out[f][:num_exec, :max_epochs]
         out["epoch_modes"] = out["epoch_modes"][:num_exec, :max_epochs + 1]
         return out
@@ -577,6 +581,7 @@ class BatchedLoop:
             event_times=jnp.full((N + 1, E1), jnp.inf, dt), transitions=jnp.full((N + 1, E1), -1, jnp.int32),
             epoch_modes=jnp.full((N + 1, E1 + 1), -1, jnp.int32).at[:N, 0].set(mode0),
             simultaneous=jnp.zeros((N + 1, E1), bool), grazing=jnp.zeros((N + 1, E1), bool),
+            inside_guard=jnp.zeros((N + 1, E1), bool),
             states_before=jnp.full((N + 1, E1, n), jnp.inf, dt),
             states_after=jnp.full((N + 1, E1, n), jnp.inf, dt),
             ys=ys, saved_modes=saved_modes, finals=finals)
@@ -609,7 +614,7 @@ class BatchedLoop:
 
     # ------------------------------------------------------------------ jump
     def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool):
+             grazing, zero_length: bool, inside=None):
         """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
         the caller); then stop on too many epochs, non-finite values, chattering or Zeno.
         `st` is the block of lanes (`on_block`) the jumps can happen on: the record is written
@@ -631,11 +636,12 @@ class BatchedLoop:
         def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
             return a.at[ids, row].set(v.T.astype(a.dtype))
 
+        inside = jnp.zeros_like(grazing) if inside is None else inside
         rec = eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
-                       r.states_before, r.states_after), rec,
+                       r.inside_guard, r.states_before, r.states_after), rec,
             (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
-             put(rec.simultaneous, simultaneous), put(rec.grazing, grazing),
+             put(rec.simultaneous, simultaneous), put(rec.grazing, grazing), put(rec.inside_guard, inside),
              put_state(rec.states_before, y_before), put_state(rec.states_after, y_after)))
         recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
         recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
@@ -693,8 +699,10 @@ class BatchedLoop:
             simultaneous = jnp.sum(fire[:K]) > 1
         else:
             y_after, simultaneous = y, jnp.array(False)
+        inside = strictly_inside(jets)[k] if kern.num_watch else jnp.array(False)
         return dict(fire=any_fire, k=k, g_start=kern.to_slots(mode, g_start.astype(self.dtype)), F=F,
-                    finite=finite, dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous)
+                    finite=finite, dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous,
+                    inside=inside)
 
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
@@ -717,7 +725,8 @@ class BatchedLoop:
             st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
             if K:
                 st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
-                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True)
+                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True,
+                                    inside=out["inside"])
             st = _stop(st, active_now & ~out["finite"], Status.NONFINITE)
             return _scatter_lanes(st_all, b0, st, idx), rec
 
@@ -823,12 +832,6 @@ class BatchedLoop:
         keep = (e < 1) & finite_y1
         factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
                              jnp.where(keep, c.factormax, c.safety)))
-        dt_new = sg(jnp.where(finite_y1, hh * factor.astype(self.dtype), 0.25 * hh))
-
-        counted = eqx.tree_at(
-            lambda s: (s.h, s.num_steps, s.num_rejected), st,
-            (jnp.where(stepping, dt_new, st.h), st.num_steps + stepping.astype(jnp.int32),
-             st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
         if W:
             hs = sg(hh)
             times = [sg(t) if i == 0 else sg(t_next) if i == len(self.thetas) - 1 else sg(t) + hs * float(th)
@@ -859,14 +862,24 @@ class BatchedLoop:
             some_step = jnp.any(stepping)
             ops = (sg(y), sg(y1), [sg(k) for k in ks], hs, times, st.mode, sg(args))
             G_e, D_e, finite_G = _computed_once(guard_samples, ops, some_step)
-            ok = keep & finite_G & stepping
+        else:
+            finite_G = jnp.ones_like(keep)
+        # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`).
+        finite, dt_new, stuck = nonfinite_step(finite_y1, finite_G, hh * factor.astype(self.dtype), sg(hh),
+                                               sg(t), self.eps)
+        dt_new = sg(dt_new)
+        keep = keep & finite
+        counted = eqx.tree_at(
+            lambda s: (s.h, s.num_steps, s.num_rejected), st,
+            (jnp.where(stepping, dt_new, st.h), st.num_steps + stepping.astype(jnp.int32),
+             st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
+        if W:
+            ok = keep & stepping
             has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
             has = has & ok
             suspect = suspect & ok & (~has | (i_d < j))
             need = _rows_any(has | suspect)
-        else:
-            finite_G = jnp.ones_like(keep)
-        acc = stepping & keep & finite_G
+        acc = stepping & keep
         new = eqx.tree_at(
             lambda s: (s.t, s.y, s.f0, s.zero_run), counted,
             (jnp.where(acc, t_next, counted.t), jnp.where(acc, y1, counted.y),
@@ -935,10 +948,9 @@ class BatchedLoop:
             took, t_end = acc, sg(t_next)
         if self.save_ts.shape[0]:
             new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks)
-        # A non-finite step that cannot be shrunk any further, or non-finite guards on an
-        # accepted step, stop the lane at the step's start, where everything was finite.
-        stuck = ~finite_y1 & (sg(hh) <= 64 * self.eps * jnp.maximum(jnp.abs(sg(t)), sg(hh)))
-        new = _stop_first(new, (stepping & (stuck | (keep & ~finite_G)), Status.NONFINITE),
+        # A non-finite step that cannot be shrunk any further stops the lane at the step's
+        # start, where everything was finite.
+        new = _stop_first(new, (stepping & stuck, Status.NONFINITE),
                           (stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS))
         return new, rec
 

@@ -33,6 +33,16 @@ def trending_negative(L1, L2, L3, scale1, eps) -> jax.Array:
     return jnp.where(l1_nonzero, L1 < 0, higher)
 
 
+def strictly_inside(jets) -> jax.Array:
+    """Per watched function, whether the state lies strictly inside its set, beyond the
+    tolerance band: g < -band. A transition that fires at the start of an epoch for this
+    reason was not reached by the flow: a reset (or the initial state) put the state inside
+    its guard. Legitimate where resets chain (a plastic impact that lands inside the lift-off
+    guard), and the mark of a modelling mistake elsewhere (a hopper whose apex lies below its
+    touchdown height); `Solution.inside_guard` records it per event."""
+    return jets["L0"] < -jets["band"]
+
+
 def start_decision(jets, outgoing, eps):
     """Which guards fire at the start of an epoch, and the guards' starting values.
 
@@ -42,7 +52,7 @@ def start_decision(jets, outgoing, eps):
     L0, band = jets["L0"], jets["band"]
     in_band = jnp.abs(L0) <= band
     neg = trending_negative(jets["L1"], jets["L2"], jets["L3"], jets["scale1"], eps)
-    fire = outgoing & ((L0 < -band) | (in_band & neg))
+    fire = outgoing & (strictly_inside(jets) | (in_band & neg))
     g_start = jnp.where(outgoing, jnp.where(L0 > band, L0, jnp.zeros_like(L0)), 1.0)
     return fire, g_start
 
@@ -90,6 +100,26 @@ def departure_step_bound(jets, outgoing, fire) -> jax.Array:
     safe_L2 = jnp.where(departing, L2, -1.0)
     tau = jnp.where(departing, L1 / (-safe_L2), jnp.inf)
     return fold(jnp.minimum, tau) if tau.shape[0] else jnp.asarray(jnp.inf, tau.dtype)
+
+
+def nonfinite_step(finite_state, finite_watched, proposed, h, t, eps):
+    """The rule for a step with a non-finite value in it: reject it and shrink, or stop.
+
+    A step whose end state (so some flow stage) or whose watched values (guards and domain
+    functions, at the interior samples and the end) are not all finite is rejected, whatever
+    its error estimate, and the next try is a quarter as long: a guard or flow that is
+    undefined only beyond some time (e.g. NaN past t = 1) is then approached from below, and
+    the events before it are located as usual. Only when the step has shrunk to the
+    resolution of t, h <= 64 eps max(|t|, h), is the non-finite value at the current time
+    itself: the execution ends there (`NONFINITE`), keeping everything computed before.
+
+    Returns `(finite, next_h, stuck)`: whether the step is finite, the next step size (the
+    controller's `proposed` where finite, h / 4 otherwise) and whether to stop.
+    """
+    finite = finite_state & finite_watched
+    next_h = jnp.where(finite, proposed, 0.25 * h)
+    stuck = ~finite & (h <= 64 * eps * jnp.maximum(jnp.abs(t), h))
+    return finite, next_h, stuck
 
 
 def first_crossings(g_start, samples):

@@ -48,7 +48,9 @@ from ._events import (
     first_step,
     locate_minimum,
     locate_root,
+    nonfinite_step,
     start_decision,
+    strictly_inside,
 )
 from ._fast_rk import UnrolledERK, unrolled_sum
 from ._kernels import Kernels, mask_inputs
@@ -91,6 +93,7 @@ class LoopState(eqx.Module):
     pend_target: jax.Array
     pend_simultaneous: jax.Array
     pend_grazing: jax.Array
+    pend_inside: jax.Array
     zeno_time: jax.Array
     zeno_state: jax.Array
     recent_times: jax.Array  # the last zeno_window + 2 event times, oldest first (Zeno test)
@@ -109,6 +112,7 @@ class EventRecord(eqx.Module):
     epoch_modes: jax.Array
     simultaneous: jax.Array
     grazing: jax.Array
+    inside_guard: jax.Array
     ys: jax.Array
     saved_modes: jax.Array
 
@@ -231,6 +235,7 @@ class Loop:
             pend_target=jnp.zeros((2,), jnp.int32),
             pend_simultaneous=jnp.zeros((2,), bool),
             pend_grazing=jnp.zeros((2,), bool),
+            pend_inside=jnp.zeros((2,), bool),
             zeno_time=jnp.array(jnp.inf, dt),
             zeno_state=jnp.full((n,), jnp.inf, dt),
             recent_times=jnp.full((self.recent,), jnp.inf, dt),
@@ -238,7 +243,8 @@ class Loop:
         )
 
     # ----------------------------------------------------------------- jump
-    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing):
+    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing,
+                inside=False):
         """Record an event (as pending: `flush` writes it into the EventRecord)."""
         slot = jnp.arange(2) == st.pend_count
 
@@ -248,8 +254,8 @@ class Loop:
         return eqx.tree_at(
             lambda s: (
                 s.pend_at, s.pend_time, s.pend_transition, s.pend_before, s.pend_after, s.pend_target,
-                s.pend_simultaneous, s.pend_grazing, s.pend_count, s.num_events, s.recent_times,
-                s.recent_states,
+                s.pend_simultaneous, s.pend_grazing, s.pend_inside, s.pend_count, s.num_events,
+                s.recent_times, s.recent_states,
             ),
             st,
             (
@@ -261,6 +267,7 @@ class Loop:
                 put(st.pend_target, target),
                 put(st.pend_simultaneous, simultaneous),
                 put(st.pend_grazing, grazing),
+                put(st.pend_inside, inside),
                 st.pend_count + 1,
                 st.num_events + 1,
                 jnp.concatenate([st.recent_times[1:], jnp.reshape(t_ev, (1,)).astype(st.recent_times.dtype)]),
@@ -281,6 +288,7 @@ class Loop:
             epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
             simultaneous=jnp.zeros((E,), bool),
             grazing=jnp.zeros((E,), bool),
+            inside_guard=jnp.zeros((E,), bool),
         )
 
     def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
@@ -295,7 +303,7 @@ class Loop:
 
             rec = eqx.tree_at(
                 lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
-                           r.epoch_modes, r.simultaneous, r.grazing),
+                           r.epoch_modes, r.simultaneous, r.grazing, r.inside_guard),
                 rec,
                 (
                     put(rec.event_times, st.pend_time[slot]),
@@ -305,6 +313,7 @@ class Loop:
                     put(rec.epoch_modes, st.pend_target[slot], row_m),
                     put(rec.simultaneous, st.pend_simultaneous[slot]),
                     put(rec.grazing, st.pend_grazing[slot]),
+                    put(rec.inside_guard, st.pend_inside[slot]),
                 ),
             )
         return rec
@@ -318,7 +327,8 @@ class Loop:
         )
 
     def jump(
-        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False
+        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False,
+        inside=False,
     ) -> LoopState:
         """Record transition k at t_ev and apply its reset; then stop on too many epochs,
         non-finite values, chattering, or Zeno (or complete the Zeno execution)."""
@@ -327,7 +337,7 @@ class Loop:
         finite = jnp.all(jnp.isfinite(y_after))
         target = self.kern.targets[k]
         zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
-        recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing)
+        recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing, inside)
         jumped = self._begin_epoch(recorded, t_ev, y_after, target, zero_run)
         jumped = _stop(jumped, zero_run > self.max_zero_epochs, Status.CHATTERING)
         if self.zeno is not None:
@@ -389,7 +399,8 @@ class Loop:
                 st_f, args_f = mask_inputs(active & jnp.any(fire) & (k < K), (st, self.args))
                 k_safe = jnp.minimum(k, K - 1)
                 fired = self.jump(
-                    st_f, k_safe, st_f.t, st_f.y, jnp.sum(fire[:K]) > 1, jnp.array(True), args_f
+                    st_f, k_safe, st_f.t, st_f.y, jnp.sum(fire[:K]) > 1, jnp.array(True), args_f,
+                    inside=strictly_inside(jets)[k_safe],
                 )
                 fired = _select(k < K, fired, blocked)
             else:
@@ -433,11 +444,6 @@ class Loop:
             t, t_next, st.y, y1, args_ext, y_err, self.error_order(), st.controller_state
         )
         finite_y1 = jnp.all(jnp.isfinite(y1))
-        keep = keep & finite_y1
-        # A non-finite step gives the controller a NaN error and a NaN next step; shrink the
-        # step instead, so the run closes in on where the flow stops being finite.
-        dt_new = sg(jnp.where(finite_y1, nt1 - nt0, 0.25 * (t_next - t))).astype(self.dtype)
-        ctrl_state = _select(finite_y1, ctrl_state, st.controller_state)
 
         # detect: guards on the interpolant at interior points and at the end of the step.
         interp = self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
@@ -461,10 +467,16 @@ class Loop:
         G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
             lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
         G = G_e[1:]
-        finite_G = jnp.all(jnp.isfinite(G))
-        has, j = first_crossings(st.g_prev, G)
-        has = has & keep & finite_G & active
+        # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`);
+        # the controller's NaN error and proposal are not used.
         h = sg(t_next - t)
+        finite, dt_new, stuck = nonfinite_step(finite_y1, jnp.all(jnp.isfinite(G)), nt1 - nt0, h, sg(t),
+                                               self.eps)
+        keep = keep & finite
+        dt_new = sg(dt_new).astype(self.dtype)
+        ctrl_state = _select(finite, ctrl_state, st.controller_state)
+        has, j = first_crossings(st.g_prev, G)
+        has = has & keep & active
         tol = self.time_tol(sg(t_next), h)
 
         def path(k):
@@ -474,7 +486,7 @@ class Loop:
         # where the end tangents allow it, find the minimum on the interpolant.
         V = jnp.concatenate([st.g_prev[None], G])
         suspect, i_d, x0_d = dip_candidates(V, jnp.where(jnp.isfinite(D_e), D_e, 0.0), s_ext)
-        suspect = suspect & keep & finite_G & active & (~has | (i_d < j))
+        suspect = suspect & keep & active & (~has | (i_d < j))
 
         def refine(_):
             def lowest(k, a_k, b_k, x_k):
@@ -590,11 +602,10 @@ class Loop:
             )
             evented = _select(k < K, jumped, evented)
         progressed = _select(keep, _select(any_event, evented, accepted), counted)
-        # A non-finite step that cannot be shrunk any further, or non-finite guards on an
-        # accepted step, stop the run at the step's start, where everything was finite.
-        stuck = ~finite_y1 & (h <= 64 * self.eps * jnp.maximum(jnp.abs(sg(t)), h))
+        # A non-finite step that cannot be shrunk any further stops the run at the step's
+        # start, where everything was finite.
         halted = _stop(counted, jnp.array(True), Status.NONFINITE)
-        new = _select(stuck | (keep & ~finite_G), halted, progressed)
+        new = _select(stuck, halted, progressed)
         new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
         return _select(active, new, st_all), save
 

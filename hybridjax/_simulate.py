@@ -378,6 +378,7 @@ def simulate(
         states_after=rec.states_after,
         simultaneous=rec.simultaneous,
         grazing=rec.grazing,
+        inside_guard=rec.inside_guard,
         zeno_time=st.zeno_time,
         zeno_state=st.zeno_state,
         final_time=final_time,

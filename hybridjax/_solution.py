@@ -54,6 +54,12 @@ class Solution(eqx.Module):
       |dg/dt| <= eps^(1/3) (|D_t g| + |D_x g| |F|) (6e-6 in float64): the event time's derivative
       -(dg/dtheta) / (dg/dt) is ill-conditioned there (infinite at exact tangency, where
       hybridjax divides by 1 instead of 0, so this flag is the warning to read).
+    - `inside_guard` (E,): True where the transition fired at the start of an epoch because
+      the state lay strictly inside its guard (g < -band, beyond the tolerance band): a reset,
+      or the initial state, put it there, and the flow never crossed the guard. A chain of
+      such zero-length epochs is legitimate where resets are meant to chain (a plastic impact
+      landing inside the lift-off guard) and otherwise marks a modelling mistake, e.g. a
+      hopper whose apex lies below its touchdown height; the repr counts these events.
     - `final_time`, `final_mode`, `final_state`: where the execution stopped.
     - `zeno_time`, `zeno_state`: the extrapolated accumulation time and limit state of a Zeno
       execution (`inf` otherwise), whether it stopped with `ZENO` or was completed.
@@ -75,6 +81,7 @@ class Solution(eqx.Module):
     states_after: Float[Array, "*batch epochs dim"]
     simultaneous: Bool[Array, "*batch epochs"]
     grazing: Bool[Array, "*batch epochs"]
+    inside_guard: Bool[Array, "*batch epochs"]
     zeno_time: Float[Array, "*batch"]
     zeno_state: Float[Array, "*batch dim"]
     final_time: Float[Array, "*batch"]
@@ -185,8 +192,11 @@ class Solution(eqx.Module):
                 f"<tr><td>{name}</td><td>{c}</td><td>{c / codes.size:.4f}</td></tr>"
                 for name, c in zip(STATUS_NAMES, counts, strict=True) if c
             )
+            inside = self._inside_count()
+            note = (f"; {inside} executions with events fired from inside a guard (`inside_guard`)"
+                    if inside else "")
             return (f"<div><b>Solution</b>: batch {np.shape(self.num_events)}, mean events "
-                    f"{float(np.mean(self.num_events)):.2f}<table><tr><th>status</th><th>count</th>"
+                    f"{float(np.mean(self.num_events)):.2f}{note}<table><tr><th>status</th><th>count</th>"
                     f"<th>fraction</th></tr>{rows}</table></div>")
         sys_ = self.system
         n = int(self.num_events)
@@ -197,7 +207,8 @@ class Solution(eqx.Module):
             f"<td>{esc(sys_.mode_names[int(self.epoch_modes[i])])} &rarr; "
             f"{esc(sys_.mode_names[int(self.epoch_modes[i + 1])])}</td>"
             f"<td>{'simultaneous ' if bool(self.simultaneous[i]) else ''}"
-            f"{'grazing' if bool(self.grazing[i]) else ''}</td></tr>"
+            f"{'grazing ' if bool(self.grazing[i]) else ''}"
+            f"{'inside guard' if bool(self.inside_guard[i]) else ''}</td></tr>"
             for i in range(n)
         )
         return (f"<div><b>Solution</b>: {self.status_name}, {n} events, final time "
@@ -210,9 +221,21 @@ class Solution(eqx.Module):
             shape = np.shape(self.num_events)
             codes, counts = np.unique(np.asarray(self.status._value), return_counts=True)
             tally = ", ".join(f"{STATUS_NAMES[c]}: {k}" for c, k in zip(codes, counts, strict=True))
-            return f"Solution(batch {shape}; {tally})"
+            inside = self._inside_count()
+            note = f"; {inside} with events fired from inside a guard (inside_guard)" if inside else ""
+            return f"Solution(batch {shape}; {tally}{note})"
+        inside = self._inside_count()
+        note = f", inside_guard={inside} events" if inside else ""
         return (
             f"Solution(status={self.status_name}, num_events={int(self.num_events)}, "
             f"final_time={float(self.final_time):.6g}, final_mode="
-            f"'{self.system.mode_names[int(self.final_mode)]}')"
+            f"'{self.system.mode_names[int(self.final_mode)]}'{note})"
         )
+
+    def _inside_count(self) -> int:
+        """Events fired from strictly inside a guard (one execution), or executions with at
+        least one (a batch)."""
+        flags = np.asarray(self.inside_guard)
+        if flags.ndim == 1:
+            return int(flags.sum())
+        return int(flags.reshape(-1, flags.shape[-1]).any(axis=-1).sum())
