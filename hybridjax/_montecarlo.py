@@ -113,24 +113,48 @@ class MonteCarloResult(NamedTuple):
         return "\n".join(lines)
 
 
-class _Progress:
-    """One text progress bar for the whole run (stderr); silent when disabled."""
+def _progress_line(done: int, total: int, run_s: float) -> str:
+    """The progress bar after `done` of `total` executions, which took `run_s` seconds of run
+    time (the compile excluded): the time left is the run time per execution so far times the
+    executions still to run.
 
-    def __init__(self, total: int, enabled: bool):
-        self.total, self.enabled, self.start = total, enabled, time.perf_counter()
+    ```python
+    _progress_line(200, 1000, 0.8)  # '[######      ...]  20.0% 200/1000 0.8 s run, 3.2 s left'
+    ```
+    """
+    frac = done / total
+    left = run_s / done * (total - done) if done > 0 else math.nan
+    return (f"[{'#' * int(30 * frac):<30}] {100 * frac:5.1f}% {done}/{total} "
+            f"{run_s:6.1f} s run, {left:6.1f} s left")
+
+
+class _Progress:
+    """One text progress bar for the whole run (stderr by default); silent when disabled. The
+    compile is reported once, apart, and the time left estimated from run time only."""
+
+    def __init__(self, total: int, enabled: bool, stream=None, clock=time.perf_counter):
+        self.total, self.enabled, self.clock = total, enabled, clock
+        self.stream = sys.stderr if stream is None else stream
+        self.run_start = clock()
+
+    def _write(self, text: str) -> None:
+        if self.enabled:
+            self.stream.write(text)
+            self.stream.flush()
+
+    def compiling(self) -> None:
+        self._write("compiling the chunk program...")
+
+    def compiled(self, compile_s: float | None) -> None:
+        """Report the compile (None: an earlier call's program reused) and start the run clock."""
+        what = "reused a compiled program" if compile_s is None else f"compiled in {compile_s:.2f} s"
+        self._write(f"\r{what:<40}\n")
+        self.run_start = self.clock()
 
     def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        frac = done / self.total
-        bar = "#" * int(30 * frac)
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else math.nan
-        sys.stderr.write(f"\r[{bar:<30}] {100 * frac:5.1f}% {done}/{self.total} "
-                         f"{elapsed:6.1f} s elapsed, {eta:6.1f} s left")
+        self._write("\r" + _progress_line(done, self.total, self.clock() - self.run_start))
         if done >= self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+            self._write("\n")
 
 
 # Compiled chunk programs of recent calls, by configuration (`_program_key`): a notebook that
@@ -196,6 +220,10 @@ def monte_carlo(
     `monte_carlo` again on the same problem with another `n`, `sampler` or `key` does not
     compile again (`compile_s` 0). Python numbers in `t0`, `t1` and the options are part of
     the program: a changed one compiles a new one.
+
+    With `progress=True` a bar on stderr reports the compile once, on its own line ("compiled
+    in 3.40 s", or that a compiled program was reused), then the executions done, the run time
+    and the time left, estimated from the run time per execution so far (the compile excluded).
     """
     if keep not in ("all", "summary"):
         raise ValueError(f"keep must be 'all' or 'summary', got {keep!r}.")
@@ -249,6 +277,7 @@ def monte_carlo(
             # Compile ahead of time, once (every chunk has the same shapes and shardings), or
             # take the program an earlier call with the same configuration compiled.
             tc = time.perf_counter()
+            bar.compiling()
             cache_key = _program_key((system, mode_index, t0, t1, tuple(devices),
                                       tuple(sorted(simulate_kwargs.items()))), (xs, a))
             compiled = _COMPILED.get(cache_key) if cache_key is not None else None
@@ -256,6 +285,9 @@ def monte_carlo(
                 compiled = run_chunk.lower(xs, a).compile()
                 compile_s = time.perf_counter() - tc
                 _remember(cache_key, compiled)
+                bar.compiled(compile_s)
+            else:
+                bar.compiled(None)
             t_start = time.perf_counter()
         out = compiled(xs, a)
         host = {k: np.asarray(jax.device_get(v))[:m] for k, v in out.items()}

@@ -23,6 +23,12 @@ def _identity_reset(t, x, args):
     return x
 
 
+def _names_tuple(names):
+    # A list of names is accepted as a tuple (a static field must be hashable); anything else is
+    # left as given for `Mode.__check_init__` to reject with the mode's name.
+    return tuple(names) if isinstance(names, list) else names
+
+
 class Mode(eqx.Module):
     """A discrete mode I: its flow F_I, its state dimension n_I and optionally its domain.
 
@@ -37,11 +43,15 @@ class Mode(eqx.Module):
       form a disjoint union); the solver carries a zero-padded state and every user function
       sees exactly its own mode's `dim` components.
     - `domain`: optional `domain(t, x, args) -> a` (a scalar or 1-D array), D_I = {a >= 0}.
+    - `names`: optional names of the `dim` state components (a tuple of strings), used in
+      plot labels; `component_names` gives `("x[0]", "x[1]", ...)` when they are not given.
 
     !!! Example
 
         ```python
-        flight = hj.Mode("flight", lambda t, x, args: jnp.array([x[1], -args["g"]]), dim=2)
+        flight = hj.Mode("flight", lambda t, x, args: jnp.array([x[1], -args["g"]]), dim=2,
+                         names=("h", "v"))
+        flight.component_names  # ("h", "v")
         ```
     """
 
@@ -49,6 +59,7 @@ class Mode(eqx.Module):
     flow: Callable
     dim: int = eqx.field(static=True)
     domain: Callable | None = None
+    names: tuple[str, ...] | None = eqx.field(static=True, default=None, converter=_names_tuple)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -59,6 +70,24 @@ class Mode(eqx.Module):
             raise TypeError(f"Mode '{self.name}': `domain` must be callable or None.")
         if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim < 1:
             raise ValueError(f"Mode '{self.name}': `dim` must be a positive int, got {self.dim!r}.")
+        if self.names is not None:
+            if not isinstance(self.names, tuple) or not all(
+                isinstance(c, str) and c for c in self.names
+            ):
+                raise TypeError(
+                    f"Mode '{self.name}': `names` must be a tuple of non-empty strings, one per "
+                    f"state component, got {self.names!r}."
+                )
+            if len(self.names) != self.dim:
+                raise ValueError(
+                    f"Mode '{self.name}': `names` has {len(self.names)} entries but `dim` is "
+                    f"{self.dim}; give one name per state component."
+                )
+
+    @property
+    def component_names(self) -> tuple[str, ...]:
+        """The names of the state components: `names`, or `("x[0]", "x[1]", ...)` without them."""
+        return self.names if self.names is not None else tuple(f"x[{i}]" for i in range(self.dim))
 
 
 class Transition(eqx.Module):

@@ -2,15 +2,33 @@
 
 - `hybrid_time_domain(sol)`: the epochs [t_i, t_{i+1}] as bars on a time axis, stacked by mode,
   zero-length epochs as diamonds (the chapter's Figure 8).
-- `trajectory(sol, component)`: one state component against time, coloured by mode, events
-  marked, resets drawn as dashed jumps.
+- `trajectory(sol, component)`: one state component, or a function `f(mode, x)` of the state,
+  against time, coloured by mode, events marked, resets drawn as dashed jumps.
 - `phase(sol, i, j)`: a phase plane coloured by mode, with the zero sets of the guards drawn
   where the modes are 2-D.
 - `batch(sol, component)`: many executions at once (alpha-blended), from their saved states.
 - `status_histogram(result)`, `zeno_histogram(result)`: Monte Carlo summaries.
 - `transition_graph(system)`: modes and transitions; edges seen in an execution solid.
 
-Every function takes an optional `ax` and returns it.
+Every function takes an optional `ax` and returns it. Where colour encodes the mode, a legend
+names the modes; axis labels use the modes' component names (`Mode(..., names=("h", "v"))`);
+plots of one execution give its status in the title; where there is nothing to plot (no Zeno
+execution, no positive-length epoch) the axis carries a note saying so.
+
+The plotted quantity `component` is an index into the state, or a function `f(mode, x)` of the
+mode's name and the state in that mode (its own `dim` components), returning a scalar: with
+modes of different dimension it puts one quantity on one axis.
+
+!!! Example
+
+    ```python
+    import hybridjax.plot as hjp
+
+    def height(mode, x):  # the body's height in flight (h, v) and in stance (compression c,)
+        return x[0] if mode == "flight" else -x[0]
+
+    ax = hjp.trajectory(sol, height)
+    ```
 """
 
 import math
@@ -25,6 +43,8 @@ try:
 except ImportError as err:  # pragma: no cover - exercised only without matplotlib
     raise ImportError("hybridjax.plot needs matplotlib: pip install 'hybridjax[plot]'") from err
 
+from matplotlib.lines import Line2D
+
 from ._status import STATUS_NAMES
 
 
@@ -34,6 +54,76 @@ def _ax(ax):
 
 def _colour(mode: int):
     return plt.get_cmap("tab10")(int(mode) % 10)
+
+
+def _note(ax, text: str) -> None:
+    """An explicit note in the middle of an axis that has nothing to show."""
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", color="0.35",
+            label="_note")
+
+
+def _title(sol, what: str) -> str:
+    n = int(sol.num_events)
+    return f"{what}: {sol.status_name}, {n} event{'' if n == 1 else 's'}"
+
+
+def _mode_legend(ax, system, modes) -> None:
+    """A legend naming the modes whose colours appear (alpha-free proxies, not drawn on the axis)."""
+    handles = [Line2D([], [], color=_colour(m), lw=2, label=system.mode_names[m]) for m in sorted(modes)]
+    if handles:
+        ax.legend(handles=handles, loc="best", fontsize="small", title="mode")
+
+
+def _values(system, component, mode: int, xs) -> np.ndarray | None:
+    """The plotted quantity at the (zero-padded) states `xs` (rows) of mode `mode`: component
+    `component` (None where the mode has no such component), or `component(name, x)` with x
+    the mode's own `dim` components."""
+    m = system.modes[mode]
+    xs = np.asarray(xs)
+    if not callable(component):
+        return xs[:, component] if component < m.dim else None
+    xs = xs[:, : m.dim]
+    try:
+        ys = jax.vmap(lambda x: jnp.asarray(component(m.name, x)))(jnp.asarray(xs))
+    except Exception:  # a function that is not traceable (numpy, Python branches on values)
+        ys = [component(m.name, x) for x in xs]
+    ys = np.asarray(ys, dtype=float)
+    if ys.shape != (xs.shape[0],):
+        raise ValueError(
+            f"The plotted function must return a scalar per state; in mode '{m.name}' it returned "
+            f"shape {ys.shape[1:]}."
+        )
+    return ys
+
+
+def _values_per_row(system, component, modes, xs) -> np.ndarray:
+    """`_values` for rows in different modes (mode -1: no state); NaN where undefined."""
+    modes, xs = np.asarray(modes).ravel(), np.asarray(xs).reshape(-1, np.shape(xs)[-1])
+    out = np.full(modes.shape, np.nan)
+    for m in np.unique(modes[modes >= 0]):
+        sel = modes == m
+        v = _values(system, component, int(m), xs[sel])
+        if v is not None:
+            out[sel] = v
+    return out
+
+
+def _component_label(system, component, mode: int) -> str | None:
+    m = system.modes[mode]
+    return m.component_names[component] if component < m.dim else None
+
+
+def _quantity_name(system, component, modes) -> str:
+    """Axis label: the function's name, or the component's names in the modes drawn."""
+    if callable(component):
+        name = getattr(component, "__name__", "")
+        return "f(mode, x)" if name in ("", "<lambda>") else name
+    names = []
+    for m in sorted(modes):
+        c = _component_label(system, component, m)
+        if c is not None and c not in names:
+            names.append(c)
+    return " / ".join(names) if names else f"x[{component}]"
 
 
 def hybrid_time_domain(sol, ax=None):
@@ -52,7 +142,7 @@ def hybrid_time_domain(sol, ax=None):
         ax.plot([b.start, b.start], [a.mode, b.mode], color="0.4", lw=0.8, ls="--", label="_jump")
     ax.set_yticks(range(len(names)), names)
     ax.set_xlabel("t")
-    ax.set_title(f"hybrid time domain ({len(epochs)} epochs)")
+    ax.set_title(f"hybrid time domain ({len(epochs)} epochs), {sol.status_name}")
     return ax
 
 
@@ -79,48 +169,91 @@ def _epoch_grid(sol, points_per_epoch: int):
     return out
 
 
-def trajectory(sol, component: int = 0, ax=None, points_per_epoch: int = 60):
-    """x[component] against t, one line per epoch coloured by mode; events and resets marked."""
+def trajectory(sol, component=0, ax=None, points_per_epoch: int = 60):
+    """One quantity of one execution against t: one line per epoch, coloured by mode (with a
+    legend); events marked, resets drawn as dotted jumps; the status in the title.
+
+    `component` is a state index, or a function `f(mode, x) -> scalar` of the mode's name and
+    the state in that mode (its own `dim` components). An index is drawn only in the modes
+    that have it, labelled with their component names (`Mode(..., names=...)`); where those
+    names differ between modes the legend gives each mode's.
+
+    !!! Example
+
+        ```python
+        ax = hjp.trajectory(sol, 0)  # the height of the bouncing ball
+        ax = hjp.trajectory(sol, lambda mode, x: 0.5 * x[1] ** 2 + 9.8 * x[0])  # its energy
+        ```
+    """
     ax = _ax(ax)
+    system = sol.system
+    segments = [(ep, ts, _values(system, component, ep.mode, xs))
+                for ep, ts, xs in _epoch_grid(sol, points_per_epoch)]
+    segments = [(ep, ts, ys) for ep, ts, ys in segments if ys is not None]
+    drawn = {ep.mode for ep, _, _ in segments}
+    differ = not callable(component) and len({_component_label(system, component, m) for m in drawn}) > 1
     seen = set()
-    for ep, ts, xs in _epoch_grid(sol, points_per_epoch):
-        name = sol.system.mode_names[ep.mode]
+    for ep, ts, ys in segments:
+        name = system.mode_names[ep.mode]
+        if differ:
+            name = f"{name}: {_component_label(system, component, ep.mode)}"
         label = name if ep.mode not in seen else "_" + name
         seen.add(ep.mode)
-        ax.plot(ts, xs[:, component], color=_colour(ep.mode), lw=1.5, label=label)
+        ax.plot(ts, ys, color=_colour(ep.mode), lw=1.5, label=label)
     n = int(sol.num_events)
     if n:
         t_ev = np.asarray(sol.event_times[:n])
-        before = np.asarray(sol.states_before[:n, component])
-        after = np.asarray(sol.states_after[:n, component])
+        modes = np.asarray(sol.epoch_modes[: n + 1])
+        before = _values_per_row(system, component, modes[:n], np.asarray(sol.states_before[:n]))
+        after = _values_per_row(system, component, modes[1:], np.asarray(sol.states_after[:n]))
         ax.plot(t_ev, before, "kx", ms=5, label="events")
-        K = sol.system.num_transitions
+        K = system.num_transitions
         for i in range(1, n):
             if int(sol.transitions[i]) >= K:  # the Zeno tail: accumulating events, not drawn
                 ax.plot([t_ev[i - 1], t_ev[i]], [after[i - 1], before[i]], color="0.5", lw=1.0,
                         ls="--", label="_zeno_tail")
         for t, b, a in zip(t_ev, before, after, strict=True):
-            if np.isfinite(a) and a != b:
+            if np.isfinite(a) and np.isfinite(b) and a != b:
                 ax.plot([t, t], [b, a], color="k", lw=0.8, ls=":", label="_reset")
+    if not segments:
+        _note(ax, "no positive-length epoch with this quantity to draw")
     ax.set_xlabel("t")
-    ax.set_ylabel(f"x[{component}]")
-    ax.legend(loc="best", fontsize="small")
+    ax.set_ylabel(_quantity_name(system, component, drawn or set(range(system.num_modes))))
+    ax.set_title(_title(sol, "trajectory"))
+    if segments or n:
+        ax.legend(loc="best", fontsize="small")
     return ax
 
 
 def phase(sol, i: int = 0, j: int = 1, ax=None, points_per_epoch: int = 80, guards: bool = True,
           grid: int = 200):
-    """x[j] against x[i], coloured by mode, with guard zero sets g(t_final, x) = 0 overlaid
-    for transitions between 2-D modes (other components fixed at 0)."""
+    """x[j] against x[i] in the modes that have both components, coloured by mode (with a
+    legend), with guard zero sets g(t_final, x) = 0 overlaid for transitions between 2-D modes
+    (other components fixed at 0); axes labelled with the component names, status in the title.
+
+    !!! Example
+
+        ```python
+        ax = hjp.phase(sol, 0, 1)  # (h, v) of the bouncing ball, the guard h = 0 dashed
+        ```
+    """
     ax = _ax(ax)
-    segments = _epoch_grid(sol, points_per_epoch)
+    system = sol.system
+    segments = [(ep, ts, xs) for ep, ts, xs in _epoch_grid(sol, points_per_epoch)
+                if max(i, j) < system.modes[ep.mode].dim]
+    seen = set()
     for ep, _, xs in segments:
-        ax.plot(xs[:, i], xs[:, j], color=_colour(ep.mode), lw=1.5)
+        name = system.mode_names[ep.mode]
+        ax.plot(xs[:, i], xs[:, j], color=_colour(ep.mode), lw=1.5,
+                label=name if ep.mode not in seen else "_" + name)
+        seen.add(ep.mode)
     n = int(sol.num_events)
     if n:
-        ax.plot(np.asarray(sol.states_before[:n, i]), np.asarray(sol.states_before[:n, j]), "kx", ms=5)
+        has = np.asarray([max(i, j) < system.modes[m].dim for m in np.asarray(sol.epoch_modes[:n])])
+        if has.any():
+            ax.plot(np.asarray(sol.states_before[:n, i])[has], np.asarray(sol.states_before[:n, j])[has],
+                    "kx", ms=5, label="events")
     if guards and segments:
-        system = sol.system
         lo = np.min([xs[:, [i, j]].min(axis=0) for _, _, xs in segments], axis=0)
         hi = np.max([xs[:, [i, j]].max(axis=0) for _, _, xs in segments], axis=0)
         pad = 0.1 * np.maximum(hi - lo, 1e-9)
@@ -137,23 +270,50 @@ def phase(sol, i: int = 0, j: int = 1, ax=None, points_per_epoch: int = 80, guar
             g = guard(jnp.asarray(pts))
             ax.contour(gx, gy, np.asarray(g).reshape(gx.shape), levels=[0.0], colors="k",
                        linestyles="--", linewidths=0.8)
-    ax.set_xlabel(f"x[{i}]")
-    ax.set_ylabel(f"x[{j}]")
+    if not segments:
+        _note(ax, f"no positive-length epoch in a mode with components {i} and {j}")
+    else:
+        ax.legend(loc="best", fontsize="small")
+    ax.set_xlabel(_quantity_name(system, i, seen or set(range(system.num_modes))))
+    ax.set_ylabel(_quantity_name(system, j, seen or set(range(system.num_modes))))
+    ax.set_title(_title(sol, "phase plane"))
     return ax
 
 
-def batch(sol, component: int = 0, ax=None, alpha: float = 0.15, max_lines: int = 500):
-    """Saved states (`saveat`) of many executions, alpha-blended, coloured by mode."""
+def batch(sol, component=0, ax=None, alpha: float = 0.15, max_lines: int = 500):
+    """Saved states (`saveat`) of many executions, alpha-blended, coloured by mode (with a
+    legend). `component` is a state index or a function `f(mode, x) -> scalar`, as in
+    `trajectory`.
+
+    !!! Example
+
+        ```python
+        sols = jax.vmap(lambda h: hj.simulate(ball, jnp.stack([h, 0.0 * h]), "flight", 0.0, 3.0,
+                                              args, saveat=jnp.linspace(0, 3, 100)))(heights)
+        ax = hjp.batch(sols, 0)
+        ```
+    """
     ax = _ax(ax)
-    ts, ys, ms = (np.asarray(a) for a in (sol.ts, sol.ys[..., component], sol.saved_modes))
+    system = sol.system
+    ts, ys, ms = (np.asarray(a) for a in (sol.ts, sol.ys, sol.saved_modes))
     if ts.ndim != 2 or ts.shape[1] == 0:
         raise ValueError("plot.batch needs a batched solution with saved states (saveat).")
-    for b in range(min(ts.shape[0], max_lines)):
+    ts, ys, ms = ts[:max_lines], ys[:max_lines], ms[:max_lines]
+    vals = _values_per_row(system, component, ms, ys).reshape(ms.shape)
+    drawn = set()
+    for b in range(ts.shape[0]):
         for m in np.unique(ms[b][ms[b] >= 0]):
-            y = np.where(ms[b] == m, ys[b], np.nan)
+            y = np.where(ms[b] == m, vals[b], np.nan)
+            if np.isnan(y).all():
+                continue  # this mode has no such component
             ax.plot(ts[b], y, color=_colour(m), alpha=alpha, lw=1.0)
+            drawn.add(int(m))
+    if drawn:
+        _mode_legend(ax, system, drawn)
+    else:
+        _note(ax, f"nothing to draw among {ts.shape[0]} executions")
     ax.set_xlabel("t")
-    ax.set_ylabel(f"x[{component}]")
+    ax.set_ylabel(_quantity_name(system, component, drawn or set(range(system.num_modes))))
     return ax
 
 
@@ -167,6 +327,8 @@ def status_histogram(result, ax=None):
     """Executions per status, from a `MonteCarloResult` or a batched `Solution`."""
     ax = _ax(ax)
     counts = _status_codes(result)
+    if counts.sum() == 0:
+        _note(ax, "no executions")
     keep = counts > 0
     names = [n for n, k in zip(STATUS_NAMES, keep, strict=True) if k]
     ax.bar(names, counts[keep], color=[_colour(i) for i in np.nonzero(keep)[0]])
@@ -176,7 +338,15 @@ def status_histogram(result, ax=None):
 
 
 def zeno_histogram(result, ax=None, bins: int = 40):
-    """Histogram of Zeno times (executions that stopped with ZENO)."""
+    """Histogram of Zeno times (executions that stopped with ZENO), from a `MonteCarloResult`
+    (`keep="all"`) or a batched `Solution`; a note on the axis where no execution was Zeno.
+
+    !!! Example
+
+        ```python
+        ax = hjp.zeno_histogram(hj.monte_carlo(ball, sampler, 10_000, t1=4.0, progress=False))
+        ```
+    """
     ax = _ax(ax)
     if hasattr(result, "per_execution"):
         if result.per_execution is None:
@@ -184,8 +354,13 @@ def zeno_histogram(result, ax=None, bins: int = 40):
         status, zt = result.per_execution["status"], result.per_execution["zeno_time"]
     else:
         status, zt = np.asarray(result.status_code), np.asarray(result.zeno_time)
+    total = np.size(status)
     zt = zt[status == STATUS_NAMES.index("ZENO")]
-    ax.hist(zt, bins=bins, color="tab:purple")
+    if zt.size:
+        ax.hist(zt, bins=bins, color="tab:purple")
+    else:
+        _note(ax, f"no Zeno execution among {total}")
+    ax.set_title(f"Zeno times: {zt.size} of {total} executions")
     ax.set_xlabel("Zeno time")
     ax.set_ylabel("executions")
     return ax

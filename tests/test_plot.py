@@ -56,6 +56,9 @@ def test_phase_plane_with_guard_overlay_and_thermostat_modes(tmp_path):
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 1.5, BALL_ARGS, stepsize_controller=TIGHT)
     ax = hjp.phase(sol, 0, 1)
     assert len(ax.collections) >= 1  # the guard's zero set h = 0
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight", "events"]
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x[0]", "x[1]")  # the ball's modes name no components
+    assert ax.get_title() == f"phase plane: T1_REACHED, {int(sol.num_events)} events"
     plt.close(ax.figure)
     p = dict(a=0.1, T_amb=5.0, P_heat=2.5, P_cool=2.0, s=20.0)
     th = hj.simulate(THERMO, jnp.array([19.0]), "off", 0.0, 20.0, p, stepsize_controller=TIGHT)
@@ -68,13 +71,20 @@ def test_phase_plane_with_guard_overlay_and_thermostat_modes(tmp_path):
     plt.close(ax.figure)
 
 
-def test_batch_status_and_zeno_histograms_and_graph(tmp_path):
+@pytest.fixture(scope="module")
+def ball_batch():
     run = jax.jit(jax.vmap(lambda h, e: hj.simulate(BALL, jnp.stack([h, 0 * h]), "flight", 0.0, 4.0,
                                                      {"g": 9.8, "e": e}, saveat=jnp.linspace(0, 4, 50),
                                                      max_epochs=16)))
-    sol = run(jnp.linspace(0.5, 1.5, 12), jnp.linspace(0.4, 0.85, 12))
+    return run(jnp.linspace(0.5, 1.5, 12), jnp.linspace(0.4, 0.85, 12))
+
+
+def test_batch_status_and_zeno_histograms_and_graph(ball_batch, tmp_path):
+    sol = ball_batch
     ax = hjp.batch(sol, 0)
     assert len(ax.lines) == 12
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight"]  # colour = mode
+    assert ax.get_ylabel() == "x[0]"
     plt.close(ax.figure)
     ax = hjp.status_histogram(sol)
     heights = {p.get_x(): p.get_height() for p in ax.patches}
@@ -97,3 +107,78 @@ def test_html_reprs(ceiling_sol):
     assert "impact" in html and "lift-off" in html
     s = ceiling_sol._repr_html_()
     assert "T1_REACHED" in s and s.count("&rarr;") == 2
+
+
+# A hopper whose modes differ in dimension: flight (h, v) falls freely; at touchdown h = 0 the
+# state becomes the stance compression c (1-D), which grows at unit rate.
+_FLIGHT = hj.Mode("flight", lambda t, x, p: jnp.array([x[1], -p["g"] + 0.0 * x[1]]), dim=2,
+                  names=("h", "v"))
+_STANCE = hj.Mode("stance", lambda t, x, p: jnp.ones_like(x), dim=1, names=("c",))
+HOPPER = hj.HybridSystem([_FLIGHT, _STANCE], [hj.Transition(
+    "flight", "stance", guard=lambda t, x, p: x[0], reset=lambda t, x, p: 0.0 * x[:1], name="touchdown")])
+
+
+@pytest.fixture(scope="module")
+def hopper_sol():
+    return hj.simulate(HOPPER, jnp.array([1.0, 0.0]), "flight", 0.0, 0.8, {"g": 9.8},
+                       stepsize_controller=TIGHT)
+
+
+def test_mode_component_names_default_and_validation():
+    flow = lambda t, x, p: x  # noqa: E731
+    assert _FLIGHT.component_names == ("h", "v") and _STANCE.names == ("c",)
+    assert hj.Mode("m", flow, dim=3).component_names == ("x[0]", "x[1]", "x[2]")
+    assert hj.Mode("m", flow, 2, None, ["a", "b"]).names == ("a", "b")  # positional, a list
+    with pytest.raises(ValueError, match=r"Mode 'stance'.*2 entries but `dim` is 1"):
+        hj.Mode("stance", flow, dim=1, names=("c", "d"))
+    with pytest.raises(TypeError, match=r"Mode 'flight'.*tuple of non-empty strings"):
+        hj.Mode("flight", flow, dim=2, names="hv")
+
+
+def test_trajectory_labels_modes_of_different_dimension_and_plots_a_function(hopper_sol, tmp_path):
+    sol = hopper_sol
+    t_td = np.sqrt(2 / 9.8)  # touchdown of a fall from h = 1
+    assert int(sol.num_events) == 1
+    np.testing.assert_allclose(sol.event_times[0], t_td, atol=1e-8)
+    # Component 0 means h in flight and c in stance: both named, one legend entry per mode.
+    ax = hjp.trajectory(sol, 0, points_per_epoch=20)
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight: h", "stance: c", "events"]
+    assert ax.get_ylabel() == "h / c"
+    assert ax.get_title() == "trajectory: T1_REACHED, 1 event"
+    plt.close(ax.figure)
+
+    # One quantity in both modes: the height, h in flight and -c in stance.
+    def height(mode, x):
+        return x[0] if mode == "flight" else -x[0]
+
+    ax = hjp.trajectory(sol, height, points_per_epoch=20)
+    assert ax.get_ylabel() == "height"
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["flight", "stance", "events"]
+    fl, st = [ln for ln in ax.lines if ln.get_label() in ("flight", "stance")]
+    t = fl.get_xdata()
+    np.testing.assert_allclose(fl.get_ydata(), 1 - 4.9 * t ** 2, atol=1e-8)
+    t = st.get_xdata()
+    np.testing.assert_allclose(st.get_ydata(), -(t - t_td), atol=1e-8)
+    ev = [ln for ln in ax.lines if ln.get_marker() == "x"][0]
+    np.testing.assert_allclose(ev.get_ydata(), [0.0], atol=1e-8)  # h at touchdown
+    ax.figure.savefig(tmp_path / "hopper.png")
+    plt.close(ax.figure)
+    ax = hjp.hybrid_time_domain(sol)
+    assert ax.get_title().endswith("T1_REACHED")
+    plt.close(ax.figure)
+
+
+def test_batch_of_a_function_and_notes_where_there_is_nothing_to_plot(ball_batch):
+    sol = ball_batch
+    ax = hjp.batch(sol, lambda mode, x: 0.5 * x[1] ** 2 + 9.8 * x[0])  # energy per unit mass
+    assert ax.get_ylabel() == "f(mode, x)"
+    e0 = 9.8 * np.linspace(0.5, 1.5, 12)  # at t = 0, at rest at height h
+    np.testing.assert_allclose([ln.get_ydata()[0] for ln in ax.lines], e0, rtol=1e-12)
+    plt.close(ax.figure)
+    status = np.asarray(sol.status_code)
+    not_zeno = sol[status != hj.Status.ZENO]
+    ax = hjp.zeno_histogram(not_zeno)
+    notes = [t.get_text() for t in ax.texts]
+    assert notes == [f"no Zeno execution among {int(np.sum(status != hj.Status.ZENO))}"]
+    assert not ax.patches
+    plt.close(ax.figure)

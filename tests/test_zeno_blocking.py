@@ -209,6 +209,43 @@ def test_chunked_arrays_and_sampler_paths_agree():
     assert diffrax is not None
 
 
+def test_progress_estimate_counts_run_time_only():
+    from hybridjax._montecarlo import _Progress, _progress_line
+
+    # 200 of 1000 executions ran in 0.8 s after the compile: 800 more at 4 ms each is 3.2 s.
+    line = _progress_line(200, 1000, 0.8)
+    assert " 20.0% 200/1000" in line and "0.8 s run" in line and "3.2 s left" in line
+    assert "nan s left" in _progress_line(0, 1000, 0.0) and "0.0 s left" in _progress_line(5, 5, 1.0)
+
+    # A fake clock: 3.4 s of compile, then two chunks of 0.5 s each for 250 executions.
+    import io
+    ticks = iter([0.0, 3.4, 3.9, 4.4])
+    out = io.StringIO()
+    bar = _Progress(1000, True, stream=out, clock=lambda: next(ticks))
+    bar.compiling()
+    bar.compiled(3.4)  # the run clock starts here, at 3.4
+    bar.update(250)  # 0.5 s for 250: 750 left at 2 ms is 1.5 s
+    bar.update(500)  # 1.0 s for 500: 1.0 s left
+    text = out.getvalue()
+    assert text.count("compiled in 3.40 s") == 1
+    assert "0.5 s run,    1.5 s left" in text and "1.0 s run,    1.0 s left" in text
+    silent = io.StringIO()
+    quiet = _Progress(10, False, stream=silent)
+    quiet.compiled(1.0)
+    quiet.update(10)
+    assert silent.getvalue() == ""
+
+
+def test_monte_carlo_progress_reports_the_compile_apart(capsys):
+    x0, args = _mc_inputs(48)
+    hj.monte_carlo(BALL, x0=x0, args=args, mode0="flight", t1=4.0, chunk_size=48, progress=True,
+                   max_epochs=32)
+    err = capsys.readouterr().err
+    lines = err.split("\n")
+    assert sum(("compiled in" in ln) or ("reused a compiled program" in ln) for ln in lines) == 1
+    assert "48/48" in lines[-2] and "s left" in lines[-2] and "compiled" not in lines[-2]
+
+
 def test_truncation_example_settles_after_finitely_many_bounces():
     p = {"g": 9.8, "e": 1 / math.sqrt(2), "v_min": 0.05}
     sys_ = examples.truncated_ball()
