@@ -10,9 +10,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from . import _dense
 from ._kernels import Kernels
 from ._status import STATUS_NAMES, Status
 from ._system import HybridSystem
+
+
+def _solve_options(dtype, solver, stepsize_controller):
+    """`evaluate`'s defaults: Tsit5, rtol = atol = 1e-10 (float64) or 1e-6 (float32)."""
+    solver = diffrax.Tsit5() if solver is None else solver
+    if stepsize_controller is None:
+        tol = 1e-10 if dtype == jnp.float64 else 1e-6
+        stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+    return solver, stepsize_controller
 
 
 class Epoch(NamedTuple):
@@ -145,18 +155,43 @@ class Solution(eqx.Module):
         *,
         solver: diffrax.AbstractSolver | None = None,
         stepsize_controller: diffrax.AbstractStepSizeController | None = None,
-    ) -> tuple[Float[Array, " dim"], Int[Array, ""]]:
+    ) -> tuple[Float[Array, "*times dim"], Int[Array, "*times"]]:
         """The state x(t) and mode at time t of one execution (dense output).
 
         Finds the epoch containing t (right-continuous: at an event time the post-event
-        state of the last transition at that instant), and integrates that epoch's flow from
-        its initial state x(t_i^+) to t with diffrax (default Tsit5, rtol = atol = 1e-10).
-        Differentiable; `jax.vmap` over `t` for many times. Times outside
-        [t0, final_time], and times inside the accumulating tail of a completed Zeno execution
-        (the epoch that ends in a `ZenoCompletion` jump, which stands for infinitely many
-        unsimulated bounces), return `inf` and mode -1.
+        state x(t_i^+) of the last transition at that instant, unlike `saveat`, which keeps the
+        pre-event state), and integrates that epoch's flow from its initial state x(t_i^+) to t
+        with diffrax (default Tsit5, rtol = atol = 1e-10). Times outside [t0, final_time], and
+        times inside the accumulating tail of a completed Zeno execution (the epoch that ends
+        in a `ZenoCompletion` jump, which stands for infinitely many unsimulated bounces),
+        return `inf` and mode -1. Differentiable (in `t` too).
+
+        **Many times.** `t` may be a 1-D array of N times (any order): the result is the states
+        (N, n) and modes (N,), computed in one pass over the epochs, integrating each epoch's
+        flow once through the query times inside it (saved with `diffrax.SaveAt(ts=...)`), so
+        hundreds of times cost about one simulation. The compiled program is shared by all
+        epochs and modes and reused by later calls with other times. Under a JAX transform
+        (`jax.jit`, `jax.grad`: a traced solution or traced times) the array form
+        re-integrates per time, as `jax.vmap(sol.evaluate)` does, and stays differentiable.
+
+        ```python
+        sol = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, {"g": 9.8, "e": 0.8})
+        x, mode = sol.evaluate(0.3)                       # (2,), ()
+        xs, modes = sol.evaluate(jnp.linspace(0, 3, 400))  # (400, 2), (400,)
+        ```
         """
         self._check_single("evaluate")
+        if np.ndim(t) == 1:
+            if _dense.is_concrete(t, self):
+                solver, stepsize_controller = _solve_options(self.final_time.dtype, solver,
+                                                             stepsize_controller)
+                return _dense.evaluate_many(self, t, solver, stepsize_controller)
+            one = lambda s: self.evaluate(s, solver=solver,  # noqa: E731
+                                          stepsize_controller=stepsize_controller)
+            return jax.vmap(one)(jnp.asarray(t))
+        if np.ndim(t) != 0:
+            raise ValueError(f"`evaluate` takes a scalar time or a 1-D array of times; got `t` "
+                             f"of shape {np.shape(t)}.")
         t = jnp.asarray(t, self.final_time.dtype)
         i = jnp.sum(self.event_times <= t).astype(jnp.int32)
         i = jnp.minimum(i, self.num_events)
@@ -165,10 +200,7 @@ class Solution(eqx.Module):
         mode = self.epoch_modes[i]
         kern = Kernels(self.system, self.args, start_x.dtype)
         term = diffrax.ODETerm(lambda tt, y, a: kern.flow(mode, tt, y, a))
-        solver = diffrax.Tsit5() if solver is None else solver
-        if stepsize_controller is None:
-            tol = 1e-10 if start_x.dtype == jnp.float64 else 1e-6
-            stepsize_controller = diffrax.PIDController(rtol=tol, atol=tol)
+        solver, stepsize_controller = _solve_options(start_x.dtype, solver, stepsize_controller)
         # The epoch that ends in a Zeno completion stands for infinitely many epochs that were
         # not simulated (the accumulating tail); re-integrating its flow would not be the execution.
         tail = (i < self.num_events) & (self.transitions[i] >= self.system.num_transitions)

@@ -5,10 +5,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 
-from helpers import BALL, BALL_ARGS, TIGHT, ball_reference
+from helpers import BALL, BALL_ARGS, TIGHT, ball_reference, compile_count
 
 
 def _ball_state(t, h0=1.0, g=9.8, e=0.8):
@@ -103,3 +104,59 @@ def test_batched_entry_point_does_not_retrace():
     b = run(jnp.array([0.7, 0.9]), 0.6)
     np.testing.assert_allclose(a.event_times[:, 0], np.sqrt(2 * np.array([1.0, 1.5]) / 9.8), atol=1e-8)
     np.testing.assert_allclose(b.event_times[:, 0], np.sqrt(2 * np.array([0.7, 0.9]) / 9.8), atol=1e-8)
+
+
+def _ball_closed_form(t, h0=1.0, g=9.8, e=0.8):
+    """(h, v) of the ball dropped from rest at time t, from its impact times: a parabola from the
+    last impact t_k <= t (right-continuous), with launch speed e^k sqrt(2 g h0)."""
+    w = np.sqrt(2 * g * h0)
+    t_k, v_k, h_k, t_next = 0.0, 0.0, h0, np.sqrt(2 * h0 / g)
+    while t_next <= t:
+        w *= e
+        t_k, v_k, h_k, t_next = t_next, w, 0.0, t_next + 2 * w / g
+    dt = t - t_k
+    return np.array([h_k + v_k * dt - 0.5 * g * dt * dt, v_k - g * dt])
+
+
+@pytest.fixture(scope="module")
+def ball_six_bounces():
+    return hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, BALL_ARGS,
+                       stepsize_controller=TIGHT)
+
+
+def test_evaluate_many_times_in_one_pass_against_closed_form_and_without_recompiling(ball_six_bounces):
+    sol = ball_six_bounces
+    assert int(sol.num_events) == 6
+    # 200 times over six bounces, shuffled, plus 300 inside the first flight (more than one
+    # compiled segment's worth of times in one epoch) and two outside [t0, final_time].
+    rng = np.random.default_rng(0)
+    ts = np.concatenate([rng.permutation(np.linspace(0.0, 3.0, 200)),
+                         np.linspace(0.01, 0.44, 300), [-0.5, 3.5]])
+    xs, modes = sol.evaluate(ts)
+    assert xs.shape == (502, 2) and modes.shape == (502,)
+    expected = np.stack([_ball_closed_form(t) for t in ts[:500]])
+    np.testing.assert_allclose(xs[:500], expected, rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(modes[:500], 0)
+    assert np.all(np.isinf(np.asarray(xs[500:]))) and np.all(np.asarray(modes[500:]) == -1)
+    # The same convention as the scalar form: right-continuous, x(t_i^+) at an event time.
+    events = np.asarray(sol.event_times[:6])
+    at_events, _ = sol.evaluate(events)
+    np.testing.assert_array_equal(at_events, sol.states_after[:6])
+    x_one, m_one = sol.evaluate(1.3)
+    assert x_one.shape == (2,) and m_one.shape == ()
+    np.testing.assert_allclose(x_one, sol.evaluate(np.array([1.3]))[0][0], rtol=0, atol=1e-12)
+    # Other times, another count: the compiled program is reused.
+    before = compile_count()
+    xs2, _ = sol.evaluate(np.linspace(0.05, 2.95, 157))
+    assert compile_count() == before
+    np.testing.assert_allclose(
+        xs2, np.stack([_ball_closed_form(t) for t in np.linspace(0.05, 2.95, 157)]), atol=1e-8)
+
+
+def test_evaluate_rejects_batches_and_higher_rank_times(ball_six_bounces):
+    sol = ball_six_bounces
+    with pytest.raises(ValueError, match="scalar time or a 1-D array"):
+        sol.evaluate(np.zeros((2, 3)))
+    batch = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), sol)
+    with pytest.raises(ValueError, match="`evaluate` works on one execution"):
+        batch.evaluate(np.array([0.1, 0.2]))
