@@ -51,6 +51,7 @@ from ._events import (
     locate_root,
     nonfinite_step,
     start_decision,
+    step_collapsed,
     strictly_inside,
 )
 from ._fast_rk import fold as _fold
@@ -951,6 +952,7 @@ class BatchedLoop:
         # A non-finite step that cannot be shrunk any further stops the lane at the step's
         # start, where everything was finite.
         new = _stop_first(new, (stepping & stuck, Status.NONFINITE),
+                          (stepping & step_collapsed(finite, dt_new, sg(t), self.eps), Status.STEP_COLLAPSE),
                           (stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS))
         return new, rec
 

@@ -122,6 +122,15 @@ def nonfinite_step(finite_state, finite_watched, proposed, h, t, eps):
     return finite, next_h, stuck
 
 
+def step_collapsed(finite, next_h, t, eps):
+    """The rule for a step size that has collapsed: the next step proposed by the controller,
+    with every value finite, is at the resolution of t, next_h <= 16 eps |t|. The solver cannot
+    meet its tolerance with any step that still moves t (a flow blowing up in finite time,
+    x' = x^2 near t = 1 / x0, is the common cause): the execution ends `STEP_COLLAPSE` at t,
+    instead of creeping on by an ulp per step until `MAX_STEPS`."""
+    return finite & (next_h <= 16 * eps * jnp.abs(t))
+
+
 def first_crossings(g_start, samples):
     """Per guard, whether and where it first goes from > 0 to <= 0 over the samples.
 

@@ -50,6 +50,7 @@ from ._events import (
     locate_root,
     nonfinite_step,
     start_decision,
+    step_collapsed,
     strictly_inside,
 )
 from ._fast_rk import UnrolledERK, unrolled_sum
@@ -606,6 +607,7 @@ class Loop:
         # start, where everything was finite.
         halted = _stop(counted, jnp.array(True), Status.NONFINITE)
         new = _select(stuck, halted, progressed)
+        new = _stop(new, step_collapsed(finite, dt_new, sg(t), self.eps), Status.STEP_COLLAPSE)
         new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
         return _select(active, new, st_all), save
 

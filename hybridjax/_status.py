@@ -11,8 +11,8 @@ class Status(eqx.Enumeration):
 
     One value per execution; under `jax.vmap` or `simulate_batch` a batch of them.
     Precedence when two apply at the same iteration: the first condition met in loop order
-    wins (non-finite values, then the step limit, then the epoch limit), and everything
-    computed before the stop is kept.
+    wins (non-finite values, then a collapsed step size, then the step limit, then the epoch
+    limit), and everything computed before the stop is kept.
 
     A status is also its integer code, the index of its name in `hj.STATUS_NAMES` (codes are
     only ever appended, so stored codes keep their meaning): `int(...)` of one status, or of
@@ -47,6 +47,8 @@ class Status(eqx.Enumeration):
     CHATTERING = "Too many zero-length epochs in a row (chattering / zero-time Zeno)."
     MAX_STEPS = "The execution needed more than `max_steps` solver steps."
     NONFINITE = "A flow, guard or reset produced a non-finite value."
+    STEP_COLLAPSE = ("The step size fell to the resolution of t with every value finite: the flow "
+                     "blows up in finite time at `final_time`, or the tolerance cannot be met there.")
 
 
 STATUS_NAMES: tuple[str, ...] = (
@@ -57,6 +59,7 @@ STATUS_NAMES: tuple[str, ...] = (
     "CHATTERING",
     "MAX_STEPS",
     "NONFINITE",
+    "STEP_COLLAPSE",
 )
 
 

@@ -1,6 +1,7 @@
-"""A value that is not finite only beyond some time: the step that reaches it is rejected and
-shrunk, the events before it are kept, and the execution ends `NONFINITE` where the value stops
-being finite (the rule `nonfinite_step`), in both engines."""
+"""Runs that cannot go on, in both engines: a value that is not finite only beyond some time
+(the step that reaches it is rejected and shrunk, the events before it are kept, and the
+execution ends `NONFINITE` where the value stops being finite: the rule `nonfinite_step`), and
+a flow that blows up in finite time (the step size collapses: `step_collapsed`)."""
 
 import math
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 import hybridjax as hj
-from hybridjax._events import nonfinite_step
+from hybridjax._events import nonfinite_step, step_collapsed
 
 from helpers import TIGHT
 
@@ -65,3 +66,29 @@ def test_a_value_undefined_beyond_t_1_keeps_the_events_before_it(where, engine):
     np.testing.assert_allclose(times[:2], IMPACTS[:2], rtol=1e-9)
     # Ends where the value stops being finite, approached from below.
     assert 1.0 - 1e-9 <= final_time <= 1.0
+
+
+# x' = x^2 from x(0) = x0 blows up at t = 1 / x0.
+BLOWUP = hj.HybridSystem([hj.Mode("m", lambda t, x, a: x * x, dim=1)], [])
+_blowup = jax.jit(lambda x0: hj.simulate(BLOWUP, x0, "m", 0.0, 2.0))
+_blowup_batch = jax.jit(lambda x0: hj.simulate_batch(BLOWUP, x0[None], "m", 0.0, 2.0))
+
+
+def test_the_collapse_rule_is_at_the_resolution_of_t():
+    eps = float(jnp.finfo(jnp.float64).eps)
+    assert bool(step_collapsed(jnp.array(True), 16 * eps * 0.5, 0.5, eps))
+    assert not bool(step_collapsed(jnp.array(True), 32 * eps * 0.5, 0.5, eps))
+    assert not bool(step_collapsed(jnp.array(False), 0.0, 0.5, eps))  # non-finite: the other rule
+
+
+@pytest.mark.parametrize("engine", ["simulate", "simulate_batch"])
+def test_a_blow_up_in_finite_time_ends_with_a_collapsed_step_at_its_time(engine):
+    x0 = jnp.array([2.0])
+    sol = _blowup(x0) if engine == "simulate" else _blowup_batch(x0)
+    assert int(np.asarray(sol.status).reshape(-1)[0]) == int(hj.Status.STEP_COLLAPSE)
+    t = float(np.asarray(sol.final_time).reshape(-1)[0])
+    x = float(np.asarray(sol.final_state).reshape(-1)[0])
+    # At the pole 1 / x0, to the default tolerance (1e-8) amplified by the pole's growth.
+    np.testing.assert_allclose(t, 0.5, rtol=1e-7)
+    assert np.isfinite(x) and x > 1e12
+    assert int(np.asarray(sol.num_steps).reshape(-1)[0]) < 4096
