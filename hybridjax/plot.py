@@ -64,7 +64,10 @@ def _note(ax, text: str) -> None:
 
 def _title(sol, what: str) -> str:
     n = int(sol.num_events)
-    return f"{what}: {sol.status_name}, {n} event{'' if n == 1 else 's'}"
+    inside = int(np.sum(np.asarray(sol.inside_guard)))
+    # Events fired from strictly inside a guard (`Solution.inside_guard`): often a modelling mistake.
+    mark = f", {inside} fired inside a guard" if inside else ""
+    return f"{what}: {sol.status_name}, {n} event{'' if n == 1 else 's'}{mark}"
 
 
 def _mode_legend(ax, system, modes) -> None:
@@ -160,7 +163,7 @@ def _epoch_grid(sol, points_per_epoch: int):
     if not segments:
         return []
     all_t = jnp.asarray(np.concatenate([ts for _, ts in segments]))
-    xs, _ = jax.vmap(sol.evaluate)(all_t)
+    xs, _ = sol.evaluate(all_t)  # one pass over the epochs
     xs = np.asarray(xs)
     out, k = [], 0
     for ep, ts in segments:
@@ -312,6 +315,11 @@ def batch(sol, component=0, ax=None, alpha: float = 0.15, max_lines: int = 500):
         _mode_legend(ax, system, drawn)
     else:
         _note(ax, f"nothing to draw among {ts.shape[0]} executions")
+    # Executions with an event fired from strictly inside a guard (`Solution.inside_guard`).
+    flags = np.asarray(sol.inside_guard)
+    flags = np.any(flags.reshape(-1, flags.shape[-1]), axis=-1)
+    if flags.any():
+        ax.set_title(f"{int(flags.sum())} of {flags.size} executions fired a transition from inside a guard")
     ax.set_xlabel("t")
     ax.set_ylabel(_quantity_name(system, component, drawn or set(range(system.num_modes))))
     return ax

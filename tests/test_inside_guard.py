@@ -41,3 +41,14 @@ def test_the_batched_engine_flags_it_too_and_the_repr_counts_executions():
     _check(sol.event_times[0], sol.transitions[0], sol.inside_guard[0], sol.num_events[0])
     assert int(sol.num_events[1]) == 0 and not np.any(np.asarray(sol.inside_guard[1]))
     assert "1 with events fired from inside a guard" in repr(sol)
+
+
+def test_plots_mark_events_fired_inside_a_guard():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import hybridjax.plot as hjp
+
+    ax = hjp.trajectory(_run(X0), 0)
+    assert "1 fired inside a guard" in ax.get_title()
+    assert "fired" not in hjp.trajectory(_run(jnp.array([0.0, 1.0])), 0).get_title()
