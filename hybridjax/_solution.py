@@ -258,10 +258,13 @@ class Solution(eqx.Module):
             return f"Solution(batch {shape}; {tally}{note})"
         inside = self._inside_count()
         note = f", inside_guard={inside} events" if inside else ""
+        mode = self.system.modes[int(self.final_mode)]
+        state = ", ".join(f"{name}={float(v):.6g}" for name, v in
+                          zip(mode.component_names, np.asarray(self.final_state)[: mode.dim], strict=True))
         return (
             f"Solution(status={self.status_name}, num_events={int(self.num_events)}, "
-            f"final_time={float(self.final_time):.6g}, final_mode="
-            f"'{self.system.mode_names[int(self.final_mode)]}'{note})"
+            f"final_time={float(self.final_time):.6g}, final_mode='{mode.name}', "
+            f"final_state=({state}){note})"
         )
 
     def _inside_count(self) -> int:

@@ -33,6 +33,9 @@ def test_a_reset_into_a_guard_is_flagged_per_event():
     sol = _run(X0)
     _check(sol.event_times, sol.transitions, sol.inside_guard, sol.num_events)
     assert "inside_guard=1 events" in repr(sol)
+    # The repr names the final state's components (the mode's `names`, x[i] by default).
+    z, v = examples.ceiling_ball_closed_form(0.0, 7.0, ARGS, 1.0)["final_state"]
+    assert f"final_state=(x[0]={z:.6g}, x[1]={v:.6g})" in repr(sol)
     assert "inside guard" in sol._repr_html_()
 
 
