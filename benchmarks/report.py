@@ -491,10 +491,48 @@ def _plot_derivative_accuracy(res: dict) -> str:
     return _save(fig, "derivative_accuracy.png")
 
 
+def first_call(res: dict) -> list[str]:
+    out = _page("first_call", "First call", res, "first_call.py",
+                "What the first call costs a new user: each system and call in a fresh Python process, from "
+                "`import hybridjax` to the first result. *forward*: `jax.jit` of `hj.simulate(...).final_state`; "
+                "*reverse*: `jax.jit(jax.grad(...))` of the final state's first component with respect to `x0`; "
+                "*jvp*: `jax.jit` of `jax.jvp` of the final state along a direction of `x0` "
+                "(`adjoint=diffrax.ForwardMode()`). Float64, Tsit5, default tolerances (rtol = atol = 1e-8), "
+                "`x0` and `args` passed as arrays. Systems: the bouncing ball (g = 9.8, e = 0.8, x0 = (1, 0), "
+                "T = 3); the thermostat (from 19 in `off`, T = 40); the wall particle (modes of dimension 4 and 2, "
+                "T = 3); the integrate-and-fire neuron (I = 1.5, tau = 0.02, T = 0.5, about 22 spikes). "
+                "*import*: `import jax` and `import hybridjax`; *trace* and *lower*: `fn.trace(...)` and "
+                "`.lower()`; *XLA*: `.compile()`; *first result*: from the process's first line to the first "
+                "result (wall time; in brackets the process's CPU time, a check on a shared machine). *program*: the lowered StableHLO (size and operations) and the optimised HLO XLA "
+                "compiled (instructions). *error*: against the closed form (derivatives: its central "
+                "differences). The cache rows use JAX's persistent compilation cache in a fresh directory: the "
+                "first process compiles and writes it, a later process reads the compiled program (tracing and "
+                "lowering still run). See the [FAQ](../faq.md#compile-time).")
+    names = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle", "lif": "integrate-and-fire"}
+    for call in res["calls"]:
+        body = []
+        for system in res["systems"]:
+            for proc, r in res["rows"].get(system, {}).get(call, {}).items():
+                if "failed" in r:
+                    body.append([names.get(system, system), proc, "failed: " + r["failed"], *[""] * 8])
+                    continue
+                body.append([names.get(system, system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
+                             f"{r['trace_s']:.1f} s", f"{r['lower_s']:.1f} s", f"{r['compile_s']:.1f} s",
+                             f"{r['first_run_s'] * 1e3:.0f} ms", f"**{r['first_result_s']:.1f} s**"
+                             + (f" ({r['first_result_cpu_s']:.1f} s CPU)" if "first_result_cpu_s" in r else ""),
+                             f"{r['stablehlo_bytes'] / 2**10:,.0f} KiB, {r['stablehlo_ops']:,} ops",
+                             f"{r['hlo_instructions']:,}", f"{r['error']:.0e}"])
+        if body:
+            out += [f"## {call}", "",
+                    *_table(["system", "process", "import", "trace", "lower", "XLA", "first run", "first result",
+                             "program (StableHLO)", "HLO instructions", "error"], body)]
+    return out
+
+
 PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": block_size,
          "guard_cost": guard_cost, "gradient_cost": gradient_cost, "compile_time": compile_time,
          "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits,
-         "derivative_accuracy": derivative_accuracy}
+         "derivative_accuracy": derivative_accuracy, "first_call": first_call}
 
 
 def main():
