@@ -72,8 +72,8 @@ def first_step(initial, proposed, carry: bool):
     the previous epoch) starts with that proposal, as DifferentialEquations.jl keeps its step
     size across a callback: Hairer's rule does not know the scale the solve has already
     found and at tight tolerances starts far below it, which costs several more steps per
-    epoch. If the reset
-    has changed the scale, the controller rejects and shrinks the step as it would anywhere:
+    epoch. If the reset has changed the scale, the controller rejects and shrinks the step as
+    it would anywhere:
     an explicit step across a transient faster than itself is unstable, its error estimate
     large. An implicit step across one is stable and can be accepted while its dense output
     (Hermite, where events are located) is far off: the stiff relay with Kvaerno3/5, a

@@ -224,7 +224,7 @@ class Solution(eqx.Module):
                 f"<tr><td>{name}</td><td>{c}</td><td>{c / codes.size:.4f}</td></tr>"
                 for name, c in zip(STATUS_NAMES, counts, strict=True) if c
             )
-            inside = self._inside_count()
+            inside = self.inside_guard_count()
             note = (f"; {inside} executions with events fired from inside a guard (`inside_guard`)"
                     if inside else "")
             return (f"<div><b>Solution</b>: batch {np.shape(self.num_events)}, mean events "
@@ -253,10 +253,10 @@ class Solution(eqx.Module):
             shape = np.shape(self.num_events)
             codes, counts = np.unique(np.asarray(self.status._value), return_counts=True)
             tally = ", ".join(f"{STATUS_NAMES[c]}: {k}" for c, k in zip(codes, counts, strict=True))
-            inside = self._inside_count()
+            inside = self.inside_guard_count()
             note = f"; {inside} with events fired from inside a guard (inside_guard)" if inside else ""
             return f"Solution(batch {shape}; {tally}{note})"
-        inside = self._inside_count()
+        inside = self.inside_guard_count()
         note = f", inside_guard={inside} events" if inside else ""
         mode = self.system.modes[int(self.final_mode)]
         state = ", ".join(f"{name}={float(v):.6g}" for name, v in
@@ -267,9 +267,9 @@ class Solution(eqx.Module):
             f"final_state=({state}){note})"
         )
 
-    def _inside_count(self) -> int:
-        """Events fired from strictly inside a guard (one execution), or executions with at
-        least one (a batch)."""
+    def inside_guard_count(self) -> int:
+        """Events fired from strictly inside a guard (`inside_guard`) for one execution; for a
+        batch, the executions with at least one."""
         flags = np.asarray(self.inside_guard)
         if flags.ndim == 1:
             return int(flags.sum())

@@ -64,7 +64,7 @@ def _note(ax, text: str) -> None:
 
 def _title(sol, what: str) -> str:
     n = int(sol.num_events)
-    inside = int(np.sum(np.asarray(sol.inside_guard)))
+    inside = sol.inside_guard_count()
     # Events fired from strictly inside a guard (`Solution.inside_guard`): often a modelling mistake.
     mark = f", {inside} fired inside a guard" if inside else ""
     return f"{what}: {sol.status_name}, {n} event{'' if n == 1 else 's'}{mark}"
@@ -316,10 +316,10 @@ def batch(sol, component=0, ax=None, alpha: float = 0.15, max_lines: int = 500):
     else:
         _note(ax, f"nothing to draw among {ts.shape[0]} executions")
     # Executions with an event fired from strictly inside a guard (`Solution.inside_guard`).
-    flags = np.asarray(sol.inside_guard)
-    flags = np.any(flags.reshape(-1, flags.shape[-1]), axis=-1)
-    if flags.any():
-        ax.set_title(f"{int(flags.sum())} of {flags.size} executions fired a transition from inside a guard")
+    inside = sol.inside_guard_count()
+    if inside:
+        total = int(np.size(sol.num_events))
+        ax.set_title(f"{inside} of {total} executions fired a transition from inside a guard")
     ax.set_xlabel("t")
     ax.set_ylabel(_quantity_name(system, component, drawn or set(range(system.num_modes))))
     return ax
