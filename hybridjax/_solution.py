@@ -210,7 +210,7 @@ class Solution(eqx.Module):
         sol = diffrax.diffeqsolve(
             term, solver, start_t, jnp.where(same, start_t + 1, t_end), None, start_x,
             args=self.args, saveat=diffrax.SaveAt(t1=True),
-            stepsize_controller=stepsize_controller, max_steps=16384, throw=False,
+            stepsize_controller=stepsize_controller, max_steps=_dense.MAX_STEPS, throw=False,
         )
         x = jnp.where(same, start_x, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
