@@ -24,7 +24,7 @@ from ._transforms import (
     naming_the_forward_mode_fix,
     warn_if_forward_mode_beneath,
 )
-from ._validation import check_time_span
+from ._validation import as_state_array, check_time_span
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:
@@ -330,7 +330,7 @@ def simulate(
         sol.event_times[:3]   # impacts at sqrt(2 h0 / g) (1 + 2 e + 2 e^2 + ...)
         ```
     """
-    x0_arr = jnp.asarray(x0)
+    x0_arr = as_state_array(x0, "simulate")
     dtype, kind, checkpoints, solver, controller, event_tol = _checked_options(
         system, x0_arr, args, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
         max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
@@ -344,7 +344,7 @@ def simulate(
     given = (t0, t1)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
-    t1 = check_time_span(t0, t1, "simulate", given=given)
+    t1, t1_before_t0 = check_time_span(t0, t1, "simulate", given=given)
     loop = Loop(
         system,
         t1=t1,
@@ -367,8 +367,9 @@ def simulate(
     with naming_the_forward_mode_fix():
         st, rec = loop.run(t0, y0, m0)
     final_time = st.t
+    status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, st.status)
     if throw:
-        final_time = st.status.error_if(final_time, st.status != Status.T1_REACHED)
+        final_time = status.error_if(final_time, status != Status.T1_REACHED)
     return Solution(
         event_times=rec.event_times,
         num_events=st.num_events,
@@ -384,7 +385,7 @@ def simulate(
         final_time=final_time,
         final_mode=st.mode,
         final_state=st.y,
-        status=st.status,
+        status=status,
         ts=loop.save_ts,
         ys=rec.ys,
         saved_modes=rec.saved_modes,

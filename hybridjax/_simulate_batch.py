@@ -15,9 +15,10 @@ from ._eager import compiled_when_eager
 from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
+from ._status import Status
 from ._system import HybridSystem
 from ._transforms import compiled_call_modes, naming_the_forward_mode_fix
-from ._validation import check_time_span
+from ._validation import as_state_array, check_time_span
 
 
 def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
@@ -185,7 +186,7 @@ def simulate_batch(
     if lanes is not None and (not isinstance(lanes, (int, np.integer)) or lanes < 1):
         raise ValueError(f"lanes must be a positive integer (or None: the default), got {lanes!r}.")
     _check_block(block)
-    x0_arr = jnp.asarray(x0)
+    x0_arr = as_state_array(x0, "simulate_batch")
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
     N = x0_arr.shape[0]
@@ -226,7 +227,7 @@ def simulate_batch(
     y0 = x0_arr.astype(dtype)
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
-    t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
+    t1, t1_before_t0 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
     # Reverse mode through `jax.shard_map` fails inside equinox's checkpointed loop: its closure
     # conversion compares the inputs' sharding metadata, which shard_map changes (equinox
@@ -275,7 +276,7 @@ def simulate_batch(
             out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
-    status = out.pop("status")
+    status = jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status"))
     return Solution(
         **out, status=as_status(status), ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape),
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
