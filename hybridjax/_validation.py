@@ -6,7 +6,6 @@ arrays, so the checks are cheap and have no side effects.
 
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
