@@ -117,10 +117,10 @@ def compiled_when_eager(check_time_span: Callable) -> Callable:
 
     `check_time_span(t0, t1, where, given)` is called at the call where t0 and t1 are known
     (a `ValueError` there); inside the compiled call `take_time_span_check()` then says so, and
-    the traced check adds no host callback (which would keep the program out of JAX's
-    persistent compilation cache). Traced t0 or t1 (a derivative or a batch over them) are
-    checked inside the program. Whether they were checked at the call is part of the cache
-    key, so that a program without the check never serves a call that needs it."""
+    the program needs no check of its own. Traced t0 or t1 (a derivative or a batch over them)
+    are checked inside the program (a `T1_BEFORE_T0` status where t1 < t0). Whether they were
+    checked at the call is part of the cache key, so that a program without the check never
+    serves a call that needs it."""
 
     def wrap(fn: Callable) -> Callable:
         signature = inspect.signature(fn)
