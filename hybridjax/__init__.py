@@ -17,6 +17,8 @@ from ._search import Witness as Witness
 from ._search import box_samples as box_samples
 from ._search import constraint_violation as constraint_violation
 from ._search import find_point as find_point
+from ._properties import PropertyReport as PropertyReport
+from ._properties import check_properties as check_properties
 from ._saltation import VariationalJacobian as VariationalJacobian
 from ._saltation import saltation_matrix as saltation_matrix
 from ._saltation import variational_jacobian as variational_jacobian
