@@ -32,7 +32,7 @@ import numpy as np
 
 from ._events import start_decision
 from ._kernels import Kernels
-from ._search import box_samples, find_point
+from ._search import box_samples, search
 from ._system import HybridSystem
 from ._validation import domain_sizes
 
@@ -160,23 +160,51 @@ class PropertyReport:
     def _rows(self) -> list[tuple[str, str, str, str]]:
         rows = []
         for a in self.achievable:
-            rows.append(("achievable (eq. 3)", f"{a.transition} (from {a.source})",
-                         "achievable" if a.achievable else "no point found", _point(a.t, a.state)))
+            rows.append(
+                (
+                    "achievable (eq. 3)",
+                    f"{a.transition} (from {a.source})",
+                    "achievable" if a.achievable else "no point found",
+                    _point(a.t, a.state),
+                )
+            )
         for o in self.overlaps:
-            rows.append(("disjoint guards (eq. 6)", f"{o.transitions[0]} & {o.transitions[1]}",
-                         f"overlap; {o.winner} wins (listed first)", _point(o.t, o.state)))
+            rows.append(
+                (
+                    "disjoint guards (eq. 6)",
+                    f"{o.transitions[0]} & {o.transitions[1]}",
+                    f"overlap; {o.winner} wins (listed first)",
+                    _point(o.t, o.state),
+                )
+            )
         for g in self.gaps:
-            rows.append(("guards cover boundary (eq. 7)", f"{g.mode}, a[{g.component}] = 0",
-                         "gap: leaves the domain in no guard (BLOCKED)", _point(g.t, g.state)))
+            rows.append(
+                (
+                    "guards cover boundary (eq. 7)",
+                    f"{g.mode}, a[{g.component}] = 0",
+                    "gap: leaves the domain in no guard (BLOCKED)",
+                    _point(g.t, g.state),
+                )
+            )
         for r in self.resets_outside:
-            rows.append(("reset into target domain", r.transition,
-                         f"image outside (a[{r.component}] < 0); {r.outcome}",
-                         f"{_point(r.t, r.state)} -> {_fmt(r.image)}"))
+            rows.append(
+                (
+                    "reset into target domain",
+                    r.transition,
+                    f"image outside (a[{r.component}] < 0); {r.outcome}",
+                    f"{_point(r.t, r.state)} -> {_fmt(r.image)}",
+                )
+            )
         for c in self.chains:
-            verdict = ("zero-time cycle (chattering)" if c.cyclic
-                       else f"reset into guard: chain of {c.length}")
-            rows.append(("resets into guards (sec. 3.7)", " -> ".join(c.transitions), verdict,
-                         f"{_point(c.t, c.state)} -> {_fmt(c.images[0])}"))
+            verdict = "zero-time cycle (chattering)" if c.cyclic else f"reset into guard: chain of {c.length}"
+            rows.append(
+                (
+                    "resets into guards (sec. 3.7)",
+                    " -> ".join(c.transitions),
+                    verdict,
+                    f"{_point(c.t, c.state)} -> {_fmt(c.images[0])}",
+                )
+            )
         for cyc in self.cycles:
             rows.append(("zero-time cycles", " -> ".join(cyc + cyc[:1]), "cycle in the transition graph", ""))
         return rows
@@ -195,8 +223,10 @@ class PropertyReport:
 
     def _header(self) -> str:
         lo, hi = self.t_window
-        return (f"Property checks: {len(self.modes)} modes, {len(self.transitions)} transitions, "
-                f"{self.num_samples} samples per mode, t in [{lo:g}, {hi:g}].")
+        return (
+            f"Property checks: {len(self.modes)} modes, {len(self.transitions)} transitions, "
+            f"{self.num_samples} samples per mode, t in [{lo:g}, {hi:g}]."
+        )
 
     def __repr__(self) -> str:
         lines = [self._header(), CAVEAT, ""]
@@ -206,7 +236,7 @@ class PropertyReport:
         widths = [max(len(r[i]) for r in rows + [head]) for i in range(4)]
         lines.append("")
         for r in [head, tuple("-" * w for w in widths)] + rows:
-            lines.append("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
+            lines.append("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
         return "\n".join(lines)
 
     def _repr_html_(self) -> str:
@@ -250,9 +280,10 @@ class _Queries:
         self.tags.append(tag)
 
     def arrays(self):
-        cols = list(zip(*self.rows))
-        return tuple(jnp.asarray(np.stack(c) if i >= 2 else np.array(c, np.int32))
-                     for i, c in enumerate(cols))
+        cols = list(zip(*self.rows, strict=True))
+        return tuple(
+            jnp.asarray(np.stack(c) if i >= 2 else np.array(c, np.int32)) for i, c in enumerate(cols)
+        )
 
 
 def _relations(codes, values, margin):
@@ -296,10 +327,14 @@ def _search_batch(system, queries, ts, xs, args, margin, t_bounds, tol, num_star
 
     def one(q):
         mode = q[0]
-        return find_point(
-            lambda t, y, q: constraints(t, y, q)[0],
-            lambda t, y, q: constraints(t, y, q)[1],
-            ts[mode], xs[mode], q, t_bounds=t_bounds, tol=tol, num_starts=num_starts,
+        return search(
+            constraints,
+            ts[mode],
+            xs[mode],
+            q,
+            t_bounds=t_bounds,
+            tol=tol,
+            num_starts=num_starts,
             max_steps=max_steps,
         )
 
@@ -326,26 +361,34 @@ def _mode_samples(system, bounds, key, num, dtype):
     """(M, N, max_dim) samples per mode, zero-padded, from `bounds[mode]`: a (lower, upper)
     box or a sampler `(key, num) -> (num, dim)`."""
     if not isinstance(bounds, Mapping):
-        raise TypeError("check_properties: `bounds` must map each mode name to (lower, upper) or a "
-                        "sampler (key, num) -> (num, dim).")
+        raise TypeError(
+            "check_properties: `bounds` must map each mode name to (lower, upper) or a "
+            "sampler (key, num) -> (num, dim)."
+        )
     unknown = set(bounds) - set(system.mode_names) - set(range(system.num_modes))
     if unknown:
-        raise ValueError(f"check_properties: `bounds` names unknown modes {sorted(map(str, unknown))}; "
-                         f"known modes: {list(system.mode_names)}.")
+        raise ValueError(
+            f"check_properties: `bounds` names unknown modes {sorted(map(str, unknown))}; "
+            f"known modes: {list(system.mode_names)}."
+        )
     out = []
-    for i, (m, k) in enumerate(zip(system.modes, jax.random.split(key, system.num_modes))):
+    for i, (m, k) in enumerate(zip(system.modes, jax.random.split(key, system.num_modes), strict=True)):
         spec = bounds.get(m.name, bounds.get(i))
         if spec is None:
-            raise ValueError(f"check_properties: no sampling bounds for mode '{m.name}'; give "
-                             f"bounds['{m.name}'] = (lower, upper) or a sampler.")
+            raise ValueError(
+                f"check_properties: no sampling bounds for mode '{m.name}'; give "
+                f"bounds['{m.name}'] = (lower, upper) or a sampler."
+            )
         if callable(spec):
             xs = jnp.asarray(spec(k, num), dtype)
         else:
             lo, hi = (jnp.broadcast_to(jnp.asarray(v, dtype), (m.dim,)) for v in spec)
             xs = box_samples(k, lo, hi, num)
         if xs.shape != (num, m.dim):
-            raise ValueError(f"check_properties: samples of mode '{m.name}' have shape {xs.shape}; "
-                             f"expected ({num}, {m.dim}).")
+            raise ValueError(
+                f"check_properties: samples of mode '{m.name}' have shape {xs.shape}; "
+                f"expected ({num}, {m.dim})."
+            )
         out.append(jnp.pad(xs, ((0, 0), (0, system.max_dim - m.dim))))
     return jnp.stack(out)
 
@@ -381,8 +424,8 @@ def _build_queries(system, sizes, index, num_watch) -> _Queries:
     for i in range(system.num_modes):
         out = system.outgoing(i)
         for a, k in enumerate(out):
-            for l in out[a + 1:]:
-                Q.add(("overlap", k, l), i, pre=[(k, _LE), (l, _LE)] + _domain(sizes, index, i))
+            for k2 in out[a + 1 :]:
+                Q.add(("overlap", k, k2), i, pre=[(k, _LE), (k2, _LE)] + _domain(sizes, index, i))
         for j in range(sizes[i]):
             pre = [(index[i, j], _EQ)] + _domain(sizes, index, i, skip=j) + [(k, _GT) for k in out]
             Q.add(("gap", i, j), i, pre=pre, pre_lie=[(index[i, j], _LT)])
@@ -391,9 +434,9 @@ def _build_queries(system, sizes, index, num_watch) -> _Queries:
         entry = _entry(system, sizes, index, k)
         for j in range(sizes[J]):
             Q.add(("outside", k, j), system.sources[k], k, post=[(index[J, j], _LT)], **entry)
-        for l in system.outgoing(J):
-            Q.add(("into", k, l), system.sources[k], k, post=[(l, _LT)], **entry)
-            Q.add(("into", k, l), system.sources[k], k, post=[(l, _EQ)], post_lie=[(l, _LT)], **entry)
+        for k2 in system.outgoing(J):
+            Q.add(("into", k, k2), system.sources[k], k, post=[(k2, _LT)], **entry)
+            Q.add(("into", k, k2), system.sources[k], k, post=[(k2, _EQ)], post_lie=[(k2, _LT)], **entry)
     return Q
 
 
@@ -523,14 +566,17 @@ def check_properties(
     lo, hi = float(t_window[0]), float(t_window[1])
     if hi < lo:
         raise ValueError(f"check_properties: t_window {t_window} must have t0 <= t1.")
-    ts = jax.random.uniform(k_t, xs.shape[:2], dtype, lo, hi) if hi > lo else jnp.full(xs.shape[:2], lo, dtype)
+    ts = (
+        jax.random.uniform(k_t, xs.shape[:2], dtype, lo, hi) if hi > lo else jnp.full(xs.shape[:2], lo, dtype)
+    )
     t_bounds = (jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)) if hi > lo else None
     Q = _build_queries(system, sizes, index, num_watch)
     labels = tuple(tr.label for tr in system.transitions)
     names = system.mode_names
     if Q.rows:
-        w = _search_batch(system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds,
-                          tol, num_starts, max_steps)
+        w = _search_batch(
+            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, tol, num_starts, max_steps
+        )
         found, wt, wx = np.asarray(w.found), np.asarray(w.t), np.asarray(w.x)
     else:
         found = np.zeros(0, bool)
@@ -539,7 +585,9 @@ def check_properties(
         return wx[q][: system.modes[mode].dim]
 
     def fire_at(mode, t, y):
-        return np.asarray(_start_fire(system, jnp.int32(mode), jnp.asarray(t), jnp.asarray(y), args, rtol, atol))
+        return np.asarray(
+            _start_fire(system, jnp.int32(mode), jnp.asarray(t), jnp.asarray(y), args, rtol, atol)
+        )
 
     achievable, overlaps, gaps, outside, chains = [], [], [], [], []
     edges: dict[int, set[int]] = {}
@@ -549,15 +597,19 @@ def check_properties(
         if kind == "achievable":
             k = tag[1]
             i = system.sources[k]
-            achievable.append(Achievable(labels[k], names[i], bool(found[q]), float(wt[q]),
-                                         state(q, i) if found[q] else None))
+            achievable.append(
+                Achievable(
+                    labels[k], names[i], bool(found[q]), float(wt[q]), state(q, i) if found[q] else None
+                )
+            )
         elif not found[q]:
             continue
         elif kind == "overlap":
-            _, k, l = tag
+            _, k, k2 = tag
             i = system.sources[k]
-            overlaps.append(Overlap(names[i], (labels[k], labels[l]), labels[min(k, l)], float(wt[q]),
-                                    state(q, i)))
+            overlaps.append(
+                Overlap(names[i], (labels[k], labels[k2]), labels[min(k, k2)], float(wt[q]), state(q, i))
+            )
         elif kind == "gap":
             _, i, j = tag
             first = _blocked_or_winner(fire_at(i, wt[q], wx[q]), K)
@@ -570,25 +622,39 @@ def check_properties(
             image = np.asarray(y)[: system.modes[J].dim]
             first = _blocked_or_winner(fire_at(J, wt[q], y), K)
             if kind == "outside":
-                outcome = ("BLOCKED" if first is None or first >= K
-                           else f"{labels[first]} fires first")
-                outside.append(ResetOutside(labels[k], tag[2], float(wt[q]), state(q, system.sources[k]),
-                                            image, outcome))
+                outcome = "BLOCKED" if first is None or first >= K else f"{labels[first]} fires first"
+                outside.append(
+                    ResetOutside(labels[k], tag[2], float(wt[q]), state(q, system.sources[k]), image, outcome)
+                )
             elif first is not None and first < K:
                 edges.setdefault(k, set()).add(first)
-                trans, images, cyclic = _follow(system, k, jnp.asarray(wt[q]), jnp.asarray(wx[q]), args, rtol,
-                                                atol, max_chain)
-                for a, b in zip(trans, trans[1:]):
+                trans, images, cyclic = _follow(
+                    system, k, jnp.asarray(wt[q]), jnp.asarray(wx[q]), args, rtol, atol, max_chain
+                )
+                for a, b in zip(trans, trans[1:], strict=False):
                     edges.setdefault(a, set()).add(b)
                 if tuple(trans) in chain_seen:
                     continue
                 chain_seen.add(tuple(trans))
-                chains.append(Chain(tuple(labels[c] for c in trans), float(wt[q]),
-                                    state(q, system.sources[k]), tuple(images), cyclic))
+                chains.append(
+                    Chain(
+                        tuple(labels[c] for c in trans),
+                        float(wt[q]),
+                        state(q, system.sources[k]),
+                        tuple(images),
+                        cyclic,
+                    )
+                )
     cycles = tuple(tuple(labels[c] for c in cyc) for cyc in _simple_cycles(edges))
     return PropertyReport(
-        achievable=tuple(achievable), overlaps=tuple(overlaps), gaps=tuple(gaps),
-        resets_outside=tuple(outside), chains=tuple(chains), cycles=cycles, modes=names,
-        transitions=labels, num_samples=num_samples, t_window=(lo, hi),
+        achievable=tuple(achievable),
+        overlaps=tuple(overlaps),
+        gaps=tuple(gaps),
+        resets_outside=tuple(outside),
+        chains=tuple(chains),
+        cycles=cycles,
+        modes=names,
+        transitions=labels,
+        num_samples=num_samples,
+        t_window=(lo, hi),
     )
-

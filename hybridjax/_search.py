@@ -45,16 +45,22 @@ def _values(fn, t, x, args, dtype) -> Array:
     return jnp.reshape(jnp.asarray(fn(t, x, args), dtype), (-1,))
 
 
-def _residuals(equalities, inequalities, t_bounds, t, x, args) -> Array:
+def _joint(equalities, inequalities) -> Callable:
+    """(t, x, args) -> (equalities, inequalities) as two 1-D arrays (empty for `None`)."""
+
+    def constraints(t, x, args):
+        return _values(equalities, t, x, args, x.dtype), _values(inequalities, t, x, args, x.dtype)
+
+    return constraints
+
+
+def _residuals(constraints, t_bounds, t, x, args) -> Array:
     """The violated parts of every constraint, one vector: their squared sum is the violation."""
-    dtype = x.dtype
-    parts = [
-        _values(equalities, t, x, args, dtype),
-        jnp.minimum(_values(inequalities, t, x, args, dtype), 0.0),
-    ]
+    eq, ineq = constraints(t, x, args)
+    parts = [eq.astype(x.dtype), jnp.minimum(ineq, 0.0).astype(x.dtype)]
     if t_bounds is not None:
         lo, hi = t_bounds
-        parts.append(jnp.minimum(jnp.stack([t - lo, hi - t]).astype(dtype), 0.0))
+        parts.append(jnp.minimum(jnp.stack([t - lo, hi - t]).astype(x.dtype), 0.0))
     return jnp.concatenate(parts)
 
 
@@ -70,7 +76,7 @@ def constraint_violation(
     `equalities(t, x, args)` and `inequalities(t, x, args)` return 1-D arrays (or scalars),
     wanted `== 0` and `>= 0`; either may be `None`.
     """
-    r = _residuals(equalities, inequalities, None, t, x, args)
+    r = _residuals(_joint(equalities, inequalities), None, t, x, args)
     v = jnp.sum(r**2)
     return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
@@ -125,6 +131,31 @@ def find_point(
     """
     if equalities is None and inequalities is None:
         raise ValueError("find_point needs `equalities` or `inequalities` (both are None).")
+    return search(
+        _joint(equalities, inequalities),
+        ts,
+        xs,
+        args,
+        t_bounds=t_bounds,
+        tol=tol,
+        num_starts=num_starts,
+        max_steps=max_steps,
+    )
+
+
+def search(
+    constraints: Callable,
+    ts: Float[Array, " N"],
+    xs: Float[Array, "N n"],
+    args: Any = None,
+    *,
+    t_bounds: tuple[Any, Any] | None = None,
+    tol: float = 1e-10,
+    num_starts: int = 8,
+    max_steps: int = 64,
+) -> Witness:
+    """`find_point` with the constraints given by one function, `constraints(t, x, args) ->
+    (equalities, inequalities)` (two 1-D arrays), for constraints that share their work."""
     ts = jnp.asarray(ts)
     xs = jnp.asarray(xs)
     if xs.ndim != 2 or ts.shape != xs.shape[:1]:
@@ -134,7 +165,7 @@ def find_point(
     k = min(int(num_starts), xs.shape[0])
 
     def violation(t, x):
-        r = _residuals(equalities, inequalities, t_bounds, t, x, args)
+        r = _residuals(constraints, t_bounds, t, x, args)
         v = jnp.sum(r**2)
         return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
@@ -150,10 +181,10 @@ def find_point(
 
     def refine(t, x):
         if t_bounds is None:
-            fn = lambda y, _: _residuals(equalities, inequalities, None, t, y, args)
+            fn = lambda y, _: _residuals(constraints, None, t, y, args)
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
             return t, sol.value
-        fn = lambda y, _: _residuals(equalities, inequalities, t_bounds, y[0], y[1], args)
+        fn = lambda y, _: _residuals(constraints, t_bounds, y[0], y[1], args)
         sol = optx.least_squares(fn, solver, (t, x), max_steps=max_steps, throw=False)
         lo, hi = t_bounds
         return jnp.clip(sol.value[0], lo, hi).astype(dtype), sol.value[1]

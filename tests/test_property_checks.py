@@ -36,12 +36,24 @@ def point_particle() -> hj.HybridSystem:
     def a_h(x, z, th):
         return -x * jnp.sin(th) + z * jnp.cos(th)
 
-    free = hj.Mode("free", lambda t, q, p: jnp.array([q[2], q[3], 0.0 * q[2], -p["g"] + 0.0 * q[3]]), dim=4,
-                   domain=lambda t, q, p: jnp.array([q[1], a_h(q[0], q[1], p["theta"])]))
-    ground = hj.Mode("G", lambda t, q, p: jnp.array([q[1], 0.0 * q[1]]), dim=2,
-                     domain=lambda t, q, p: a_h(q[0], 0.0, p["theta"]))
-    line = hj.Mode("H", lambda t, q, p: jnp.array([q[1], -p["g"] * jnp.sin(p["theta"]) + 0.0 * q[1]]), dim=2,
-                   domain=lambda t, q, p: q[0] * jnp.sin(p["theta"]))
+    free = hj.Mode(
+        "free",
+        lambda t, q, p: jnp.array([q[2], q[3], 0.0 * q[2], -p["g"] + 0.0 * q[3]]),
+        dim=4,
+        domain=lambda t, q, p: jnp.array([q[1], a_h(q[0], q[1], p["theta"])]),
+    )
+    ground = hj.Mode(
+        "G",
+        lambda t, q, p: jnp.array([q[1], 0.0 * q[1]]),
+        dim=2,
+        domain=lambda t, q, p: a_h(q[0], 0.0, p["theta"]),
+    )
+    line = hj.Mode(
+        "H",
+        lambda t, q, p: jnp.array([q[1], -p["g"] * jnp.sin(p["theta"]) + 0.0 * q[1]]),
+        dim=2,
+        domain=lambda t, q, p: q[0] * jnp.sin(p["theta"]),
+    )
     corner = hj.Mode("GH", lambda t, q, p: 0.0 * q, dim=1)
 
     def on_line(t, q, p):  # project (x, z, vx, vz) onto the line H
@@ -54,20 +66,43 @@ def point_particle() -> hj.HybridSystem:
 
     rest1 = lambda t, q, p: 0.0 * q[:1]
     rest2 = lambda t, q, p: jnp.zeros(2) + 0.0 * q[0]
-    return hj.HybridSystem([free, ground, line, corner], [
-        hj.Transition("free", "G", guard=lambda t, q, p: q[1], reset=lambda t, q, p: q[jnp.array([0, 2])],
-                      name="free->G"),
-        hj.Transition("free", "H", guard=lambda t, q, p: a_h(q[0], q[1], p["theta"]), reset=on_line,
-                      name="free->H"),
-        hj.Transition("G", "free", guard=lambda t, q, p: p["g"] + 0.0 * q[0],
-                      reset=lambda t, q, p: jnp.array([q[0], 0.0, q[1], 0.0]), name="G->free"),
-        hj.Transition("H", "free", guard=lambda t, q, p: p["g"] * jnp.cos(p["theta"]) + 0.0 * q[0],
-                      reset=off_line, name="H->free"),
-        hj.Transition("G", "GH", guard=lambda t, q, p: a_h(q[0], 0.0, p["theta"]), reset=rest1, name="G->GH"),
-        hj.Transition("H", "GH", guard=lambda t, q, p: q[0] * jnp.sin(p["theta"]), reset=rest1, name="H->GH"),
-        hj.Transition("GH", "G", guard=lambda t, q, p: 0.0 * q[0], reset=rest2, name="GH->G"),
-        hj.Transition("GH", "H", guard=lambda t, q, p: p["g"] + 0.0 * q[0], reset=rest2, name="GH->H"),
-    ])
+    return hj.HybridSystem(
+        [free, ground, line, corner],
+        [
+            hj.Transition(
+                "free",
+                "G",
+                guard=lambda t, q, p: q[1],
+                reset=lambda t, q, p: q[jnp.array([0, 2])],
+                name="free->G",
+            ),
+            hj.Transition(
+                "free", "H", guard=lambda t, q, p: a_h(q[0], q[1], p["theta"]), reset=on_line, name="free->H"
+            ),
+            hj.Transition(
+                "G",
+                "free",
+                guard=lambda t, q, p: p["g"] + 0.0 * q[0],
+                reset=lambda t, q, p: jnp.array([q[0], 0.0, q[1], 0.0]),
+                name="G->free",
+            ),
+            hj.Transition(
+                "H",
+                "free",
+                guard=lambda t, q, p: p["g"] * jnp.cos(p["theta"]) + 0.0 * q[0],
+                reset=off_line,
+                name="H->free",
+            ),
+            hj.Transition(
+                "G", "GH", guard=lambda t, q, p: a_h(q[0], 0.0, p["theta"]), reset=rest1, name="G->GH"
+            ),
+            hj.Transition(
+                "H", "GH", guard=lambda t, q, p: q[0] * jnp.sin(p["theta"]), reset=rest1, name="H->GH"
+            ),
+            hj.Transition("GH", "G", guard=lambda t, q, p: 0.0 * q[0], reset=rest2, name="GH->G"),
+            hj.Transition("GH", "H", guard=lambda t, q, p: p["g"] + 0.0 * q[0], reset=rest2, name="GH->H"),
+        ],
+    )
 
 
 PARTICLE = point_particle()
@@ -86,18 +121,22 @@ def particle_achievable_by_hand(theta: float) -> set[str]:
     - GH->G: lambda_H = 0 <= 0 always; GH->H: lambda_G = g <= 0 never.
     """
     out = {"free->G", "free->H", "G->GH", "H->GH", "GH->G"}
-    if math.cos(theta) <= 1e-12:  # cos(pi/2) rounds to 6e-17: lambda_H = 6e-16, zero to the search's tolerance
+    if (
+        math.cos(theta) <= 1e-12
+    ):  # cos(pi/2) rounds to 6e-17: lambda_H = 6e-16, zero to the search's tolerance
         out.add("H->free")
     return out
 
 
-@pytest.mark.parametrize("theta", [math.pi / 4, math.pi / 2, 3 * math.pi / 4, 5 * math.pi / 4, 7 * math.pi / 4])
+@pytest.mark.parametrize(
+    "theta", [math.pi / 4, math.pi / 2, 3 * math.pi / 4, 5 * math.pi / 4, 7 * math.pi / 4]
+)
 def test_practice_problem_1_achievable_transitions(theta):
     args = {"g": G, "theta": theta}
     report = hj.check_properties(PARTICLE, args, bounds=PARTICLE_BOUNDS)
     assert set(report.achievable_transitions) == particle_achievable_by_hand(theta)
     # Each witness lies in its guard and in its source domain (the user's functions, evaluated here).
-    for a, tr, k in zip(report.achievable, PARTICLE.transitions, range(8)):
+    for a, tr, k in zip(report.achievable, PARTICLE.transitions, range(8), strict=True):
         assert a.transition == tr.label
         if a.achievable:
             mode = PARTICLE.modes[PARTICLE.sources[k]]
@@ -122,8 +161,9 @@ def test_thermostat_is_nonblocking_with_disjoint_guards():
     # Each guard meets its domain at one threshold only (the guards lie on the domains'
     # boundaries): heat on at s - 4, heat off at s - 2, cool on at s + 4, cool off at s + 2.
     s = THERMO_ARGS["s"]
-    np.testing.assert_allclose([float(a.state[0]) for a in report.achievable], [s - 4, s - 2, s + 4, s + 2],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        [float(a.state[0]) for a in report.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
+    )
     assert "nonblocking" in repr(report) and "<table>" in report._repr_html_()
 
 
@@ -133,8 +173,13 @@ def thermostat_variant() -> hj.HybridSystem:
     "pre-cool" off -> cool, listed last, fires at T >= s + o."""
     base = examples.thermostat()
     trs = list(base.transitions)
-    trs[1] = hj.Transition("heat", "off", guard=lambda t, x, p: (p["s"] - 2 + p["d"]) - x[0],
-                           reset=lambda t, x, p: x + p["shift"], name="heat off")
+    trs[1] = hj.Transition(
+        "heat",
+        "off",
+        guard=lambda t, x, p: (p["s"] - 2 + p["d"]) - x[0],
+        reset=lambda t, x, p: x + p["shift"],
+        name="heat off",
+    )
     trs.append(hj.Transition("off", "cool", guard=lambda t, x, p: (p["s"] + p["o"]) - x[0], name="pre-cool"))
     return hj.HybridSystem(base.modes, trs)
 
@@ -194,8 +239,9 @@ def test_ceiling_chain_of_length_two_and_no_cycle():
     # the lift-off guard -g <= 0, which fires at once back to flight at (H, 0); there the impact
     # guard H - z = 0 has dz/dt = v = 0 and d2/dt2 (H - z) = g > 0: not trending negative.
     H = 2.0
-    report = hj.check_properties(examples.ceiling_ball(), {"g": G, "H": H},
-                                 bounds={"flight": (-5.0, 5.0), "contact": (-5.0, 5.0)})
+    report = hj.check_properties(
+        examples.ceiling_ball(), {"g": G, "H": H}, bounds={"flight": (-5.0, 5.0), "contact": (-5.0, 5.0)}
+    )
     (chain,) = report.chains
     assert chain.transitions == ("impact", "lift-off") and chain.length == 2 and not chain.cyclic
     assert report.max_chain_length == 2 and report.cycles == ()
@@ -209,10 +255,13 @@ def test_two_mode_reset_loop_is_a_cycle():
     # inside B's guard x - 1 <= 0, so B -> A fires at once, back to x = 0 in A, where A's guard
     # is 0 and trending negative: fires again, forever in zero time.
     flow = lambda t, x, p: -jnp.ones_like(x)
-    loop = hj.HybridSystem([hj.Mode("A", flow, dim=1), hj.Mode("B", flow, dim=1)], [
-        hj.Transition("A", "B", guard=lambda t, x, p: x[0], name="A->B"),
-        hj.Transition("B", "A", guard=lambda t, x, p: x[0] - 1.0, name="B->A"),
-    ])
+    loop = hj.HybridSystem(
+        [hj.Mode("A", flow, dim=1), hj.Mode("B", flow, dim=1)],
+        [
+            hj.Transition("A", "B", guard=lambda t, x, p: x[0], name="A->B"),
+            hj.Transition("B", "A", guard=lambda t, x, p: x[0] - 1.0, name="B->A"),
+        ],
+    )
     report = hj.check_properties(loop, None, bounds={"A": (-2.0, 2.0), "B": (-2.0, 2.0)})
     assert report.cycles == (("A->B", "B->A"),)
     assert any(c.cyclic for c in report.chains)
@@ -229,12 +278,19 @@ def hopper() -> hj.HybridSystem:
     apex of the flight, (h + v^2 / (2 g), 0). An apex below h_td is inside the touchdown guard."""
     flight = hj.Mode("flight", lambda t, x, p: jnp.array([x[1], -G + 0.0 * x[1]]), dim=2)
     stance = hj.Mode("stance", lambda t, x, p: jnp.array([x[1], K_SPRING * (H_TD - x[0]) - G]), dim=2)
-    return hj.HybridSystem([flight, stance], [
-        hj.Transition("flight", "stance", guard=lambda t, x, p: x[0] - H_TD, name="touchdown"),
-        hj.Transition("stance", "flight", guard=lambda t, x, p: jnp.maximum(H_LO - x[0], -x[1]),
-                      reset=lambda t, x, p: jnp.array([x[0] + x[1] ** 2 / (2 * G), 0.0 * x[1]]),
-                      name="lift-off"),
-    ])
+    return hj.HybridSystem(
+        [flight, stance],
+        [
+            hj.Transition("flight", "stance", guard=lambda t, x, p: x[0] - H_TD, name="touchdown"),
+            hj.Transition(
+                "stance",
+                "flight",
+                guard=lambda t, x, p: jnp.maximum(H_LO - x[0], -x[1]),
+                reset=lambda t, x, p: jnp.array([x[0] + x[1] ** 2 / (2 * G), 0.0 * x[1]]),
+                name="lift-off",
+            ),
+        ],
+    )
 
 
 def test_hopper_apex_below_touchdown_resets_into_the_touchdown_guard():
@@ -258,8 +314,10 @@ def test_hopper_apex_below_touchdown_resets_into_the_touchdown_guard():
 def test_time_varying_guard_is_searched_over_the_window():
     # A clock: guard 1 - t (fires from t = 1 on). Over t in [0, 0.5] the guard set is empty;
     # over [0, 2] it is met at t >= 1.
-    clock = hj.HybridSystem([hj.Mode("wait", lambda t, x, p: 0.0 * x, dim=1), hj.Mode("go", lambda t, x, p: 0.0 * x, dim=1)],
-                            [hj.Transition("wait", "go", guard=lambda t, x, p: 1.0 - t + 0.0 * x[0], name="ring")])
+    clock = hj.HybridSystem(
+        [hj.Mode("wait", lambda t, x, p: 0.0 * x, dim=1), hj.Mode("go", lambda t, x, p: 0.0 * x, dim=1)],
+        [hj.Transition("wait", "go", guard=lambda t, x, p: 1.0 - t + 0.0 * x[0], name="ring")],
+    )
     bounds = {"wait": (-1.0, 1.0), "go": (-1.0, 1.0)}
     early = hj.check_properties(clock, None, bounds=bounds, t_window=(0.0, 0.5))
     late = hj.check_properties(clock, None, bounds=bounds, t_window=(0.0, 2.0))
@@ -269,6 +327,8 @@ def test_time_varying_guard_is_searched_over_the_window():
 
 def test_missing_bounds_name_the_mode():
     with pytest.raises(ValueError, match="'heat'"):
-        hj.check_properties(examples.thermostat(), THERMO_ARGS, bounds={"off": (5.0, 35.0), "cool": (5.0, 35.0)})
+        hj.check_properties(
+            examples.thermostat(), THERMO_ARGS, bounds={"off": (5.0, 35.0), "cool": (5.0, 35.0)}
+        )
     with pytest.raises(ValueError, match="unknown modes"):
         hj.check_properties(examples.thermostat(), THERMO_ARGS, bounds={**THERMO_BOUNDS, "fan": (0.0, 1.0)})
