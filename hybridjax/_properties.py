@@ -549,10 +549,11 @@ def check_properties(
     !!! Example
 
         ```python
-        report = hj.check_properties(
-            hj.examples.thermostat(), args, bounds={"off": (10.0, 30.0), "heat": (10.0, 30.0),
-                                                    "cool": (10.0, 30.0)})
+        args = {"a": 0.5, "T_amb": 10.0, "P_heat": 15.0, "P_cool": 10.0, "s": 20.0}
+        bounds = {"off": (5.0, 35.0), "heat": (5.0, 35.0), "cool": (5.0, 35.0)}
+        report = hj.check_properties(hj.examples.thermostat(), args, bounds=bounds)
         report.nonblocking, report.disjoint_guards  # True, True
+        report  # a table: each transition achievable at its threshold
         ```
     """
     dtype = jnp.result_type(float)
