@@ -205,6 +205,36 @@ def test_thermostat_with_a_gap_blocks_at_a_witness_in_the_gap():
     assert "heat off" not in report.achievable_transitions  # {T >= 19} misses {T <= 18}
 
 
+DISC = hj.HybridSystem(
+    [
+        hj.Mode(
+            "disc",
+            lambda t, x, p: jnp.array([1.0 + 0.0 * x[0], 0.0 * x[1]]),
+            dim=2,
+            domain=lambda t, x, p: 1.0 - x[0] ** 2 - x[1] ** 2,
+        ),
+        hj.Mode("out", lambda t, x, p: 0.0 * x, dim=2),
+    ],
+    [hj.Transition("disc", "out", guard=lambda t, x, p: p["c"] - x[0], name="exit")],
+)
+
+
+@pytest.mark.parametrize("c", [0.0, 0.5])
+def test_gap_on_a_curved_boundary(c):
+    # The unit disc a = 1 - x^2 - y^2 >= 0 under the flow (1, 0): da/dt = -2x, so the flow leaves
+    # through the arc x > 0 (at x = 0 it is tangent, and there the guard c - x = 0 fires for c = 0,
+    # trending negative). The guard covers x >= c: for c = 0 the whole arc, for c = 0.5 not the
+    # arc 0 < x < 0.5.
+    report = hj.check_properties(DISC, {"c": c}, bounds={"disc": (-1.5, 1.5), "out": (-1.5, 1.5)})
+    if c == 0.0:
+        assert report.nonblocking and report.gaps == ()
+        return
+    (gap,) = report.gaps
+    x, y = gap.state
+    assert x * x + y * y == pytest.approx(1.0, abs=1e-8)
+    assert 0.0 < x < c
+
+
 def test_thermostat_with_an_overlapping_guard_reports_witness_and_winner():
     # pre-cool {T >= s + 3} and cool on {T >= s + 4} within off's domain s - 4 <= T <= s + 4
     # meet at T = s + 4 only; cool on is listed first and wins there.
