@@ -64,6 +64,21 @@ def _residuals(constraints, t_bounds, t, x, args) -> Array:
     return jnp.concatenate(parts)
 
 
+def _time_of(s, lo, hi):
+    """t = (lo + hi) / 2 + (hi - lo) / 2 sin(s): the time searched, kept in [lo, hi] by a smooth
+    map (a penalty on t outside the bounds has its minimiser outside them; a reflection at the
+    bounds puts a kink where the minimiser often is, at a bound, and Gauss-Newton steps
+    oscillate about it)."""
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * jnp.sin(s)
+
+
+def _angle_of(t, lo, hi):
+    """The s with `_time_of(s, lo, hi) = t`, for t in [lo, hi] at least 0.5 % of the window from
+    its ends: a start at an end would sit where d t / d s = 0, and its t would never move."""
+    w = hi - lo
+    return jnp.arcsin(jnp.clip((2 * t - lo - hi) / jnp.where(w > 0, w, 1.0), -0.99, 0.99))
+
+
 def constraint_violation(
     equalities: Callable | None,
     inequalities: Callable | None,
@@ -109,7 +124,7 @@ def find_point(
     - `ts` (N,), `xs` (N, n): the samples (`box_samples` draws them in a box).
     - `args`: passed to the constraint functions.
     - `t_bounds`: `None` keeps each start's t fixed; `(lo, hi)` optimises t too, within
-      [lo, hi] (the bounds enter as two more inequalities).
+      [lo, hi] (the samples' `ts` should lie in it).
     - `tol`: the violation accepted as zero.
     - `num_starts`: how many of the best samples are refined.
 
@@ -184,10 +199,10 @@ def search(
             fn = lambda y, _: _residuals(constraints, None, t, y, args)
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
             return t, sol.value
-        fn = lambda y, _: _residuals(constraints, t_bounds, y[0], y[1], args)
-        sol = optx.least_squares(fn, solver, (t, x), max_steps=max_steps, throw=False)
-        lo, hi = t_bounds
-        return jnp.clip(sol.value[0], lo, hi).astype(dtype), sol.value[1]
+        fn = lambda y, _: _residuals(constraints, None, _time_of(y[0], *t_bounds), y[1], args)
+        y0 = (_angle_of(t, *t_bounds), x)
+        sol = optx.least_squares(fn, solver, y0, max_steps=max_steps, throw=False)
+        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1]
 
     t1, x1 = jax.vmap(refine)(t0, x0)
     cand_t = jnp.concatenate([t0, t1])
