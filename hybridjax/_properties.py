@@ -440,9 +440,9 @@ def _build_queries(system, sizes, index, num_watch) -> _Queries:
     return Q
 
 
-def _blocked_or_winner(fire: np.ndarray, K: int) -> int | None:
-    """The simulator's choice at a start of epoch: the first firing watched function (a
-    transition if < K, a domain component, i.e. BLOCKED, otherwise), or None."""
+def _first_firing(fire: np.ndarray) -> int | None:
+    """The simulator's choice at a start of epoch (as `Loop.start_stage`): the first firing
+    watched function, a transition if < K, else a domain component (BLOCKED); None if none."""
     return int(np.argmax(fire)) if fire.any() else None
 
 
@@ -460,7 +460,7 @@ def _follow(system, k, t, y, args, rtol, atol, max_chain):
             return trans, images, True
         seen.append(key)
         fire = np.asarray(_start_fire(system, jnp.int32(system.targets[k]), t, y, args, rtol, atol))
-        nxt = _blocked_or_winner(fire, K)
+        nxt = _first_firing(fire)
         if nxt is None or nxt >= K:
             return trans, images, False
         k = nxt
@@ -613,7 +613,7 @@ def check_properties(
             )
         elif kind == "gap":
             _, i, j = tag
-            first = _blocked_or_winner(fire_at(i, wt[q], wx[q]), K)
+            first = _first_firing(fire_at(i, wt[q], wx[q]))
             if first is not None and first >= K:
                 gaps.append(Gap(names[i], j, float(wt[q]), state(q, i)))
         else:
@@ -621,7 +621,7 @@ def check_properties(
             J = system.targets[k]
             y = _reset(system, jnp.int32(k), jnp.asarray(wt[q]), jnp.asarray(wx[q]), args)
             image = np.asarray(y)[: system.modes[J].dim]
-            first = _blocked_or_winner(fire_at(J, wt[q], y), K)
+            first = _first_firing(fire_at(J, wt[q], y))
             if kind == "outside":
                 outcome = "BLOCKED" if first is None or first >= K else f"{labels[first]} fires first"
                 outside.append(
