@@ -12,6 +12,8 @@ import pytest
 import hybridjax as hj
 from hybridjax import examples
 
+from helpers import compile_count
+
 G = 9.8
 
 # ----------------------------------------------------------------------------- practice problem 1
@@ -153,8 +155,11 @@ THERMO_ARGS = {"a": 0.5, "T_amb": 10.0, "P_heat": 15.0, "P_cool": 10.0, "s": 20.
 THERMO_BOUNDS = {"off": (5.0, 35.0), "heat": (5.0, 35.0), "cool": (5.0, 35.0)}
 
 
+THERMO = examples.thermostat()
+
+
 def test_thermostat_is_nonblocking_with_disjoint_guards():
-    report = hj.check_properties(examples.thermostat(), THERMO_ARGS, bounds=THERMO_BOUNDS)
+    report = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS)
     assert report.nonblocking and report.disjoint_guards and report.deterministic
     assert report.gaps == () and report.overlaps == () and report.resets_outside == ()
     assert report.chains == () and report.cycles == ()
@@ -165,6 +170,14 @@ def test_thermostat_is_nonblocking_with_disjoint_guards():
         [float(a.state[0]) for a in report.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
     )
     assert "nonblocking" in repr(report) and "<table>" in report._repr_html_()
+
+
+def test_new_args_reuse_the_compiled_searches():
+    hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS)
+    before = compile_count()
+    report = hj.check_properties(THERMO, {**THERMO_ARGS, "s": 21.0}, bounds=THERMO_BOUNDS)
+    assert compile_count() == before
+    np.testing.assert_allclose(report.achievable[0].state, [21.0 - 4], atol=1e-6)
 
 
 def thermostat_variant() -> hj.HybridSystem:
