@@ -12,7 +12,7 @@ import pytest
 import hybridjax as hj
 from hybridjax import examples
 
-from helpers import compile_count
+from helpers import compile_count, line_system
 
 G = 9.8
 
@@ -366,6 +366,17 @@ def test_time_varying_guard_is_searched_over_the_window():
     late = hj.check_properties(clock, None, bounds=bounds, t_window=(0.0, 2.0))
     assert early.achievable_transitions == () and late.achievable_transitions == ("ring",)
     assert 1.0 - 1e-8 <= late.achievable[0].t <= 2.0
+
+
+def test_a_domain_with_no_transition_out_blocks_at_its_boundary():
+    # x' = 1 on x <= 1 and no transitions: the flow leaves through x = 1, which no guard covers.
+    report = hj.check_properties(
+        line_system(domain=lambda t, x, p: 1.0 - x[0]), None, bounds={"m": (-2.0, 2.0), "done": (-2.0, 2.0)}
+    )
+    (gap,) = report.gaps
+    assert gap.mode == "m" and not report.nonblocking
+    np.testing.assert_allclose(gap.state, [1.0], atol=1e-10)
+    assert report.achievable == () and report.chains == ()
 
 
 def test_missing_bounds_name_the_mode():
