@@ -541,7 +541,8 @@ def check_properties(
       $g \ge$ `margin`; a flow "leaving" has $\dot a \le -$`margin`).
     - `rtol`, `atol`: the tolerances of the simulation, which set the band within which the
       simulator's start rule treats a guard as touched (as in `simulate`).
-    - `tol`, `num_starts`, `max_steps`: passed to `find_point` for each search.
+    - `tol`, `num_starts`, `max_steps`: passed to `find_point` for each search. The defaults of
+      `tol` and `margin` assume float64 (`jax_enable_x64`).
     - `max_chain`: chains longer than this are reported as cycles.
 
     Returns a `PropertyReport` (a table as its `repr`, HTML in a notebook).
