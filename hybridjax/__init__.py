@@ -13,9 +13,15 @@ from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
 from ._presets import PRESET_NAMES as PRESET_NAMES
 from ._presets import accuracy_preset as accuracy_preset
+from ._properties import PropertyReport as PropertyReport
+from ._properties import check_properties as check_properties
 from ._saltation import VariationalJacobian as VariationalJacobian
 from ._saltation import saltation_matrix as saltation_matrix
 from ._saltation import variational_jacobian as variational_jacobian
+from ._search import Witness as Witness
+from ._search import box_samples as box_samples
+from ._search import constraint_violation as constraint_violation
+from ._search import find_point as find_point
 from ._simulate import simulate as simulate
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._solution import Epoch as Epoch

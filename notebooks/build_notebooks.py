@@ -297,6 +297,36 @@ print(s32.status_name, "Zeno time", float(s32.zeno_time), "closed form", example
     ],
 }
 
+NOTEBOOKS["03_zeno_and_blocking"] += [
+    ("md", """## Checking a system before running it
+
+`hj.check_properties` looks for counterexamples to the properties of the chapter's section 3 (achievable
+transitions, disjoint guards, guards covering the boundary where the flow leaves a domain, resets into the target
+domain, resets into guards and zero-time cycles) by sampling each mode in the `bounds` given and refining the best
+samples by local least squares. Every finding comes with a witness state; a property reported as holding had no
+counterexample among the samples, which is not a proof. Here, the thermostat with its heater's switch-off
+threshold in `args`: at $s - 2$ it is `examples.thermostat()`."""),
+    ("code", """base = examples.thermostat()
+trs = list(base.transitions)
+trs[1] = hj.Transition("heat", "off", guard=lambda t, x, p: p["off_at"] - x[0], name="heat off")
+thermo = hj.HybridSystem(base.modes, trs)
+pth = {"a": 0.5, "T_amb": 10.0, "P_heat": 15.0, "P_cool": 10.0, "s": 20.0, "off_at": 18.0}
+bounds = {"off": (5.0, 35.0), "heat": (5.0, 35.0), "cool": (5.0, 35.0)}
+hj.check_properties(thermo, pth, bounds=bounds)"""),
+    ("md", """With the switch-off threshold at $s - 1 = 19$, above the heat domain $T \\le s - 2$, the boundary $T = 18$,
+where heating leaves the domain, is in no guard: the check reports the gap with its witness (the compiled searches
+are reused for the new `args`), and a simulation that heats from 17 °C ends `BLOCKED` there."""),
+    ("code", """gap = hj.check_properties(thermo, {**pth, "off_at": 19.0}, bounds=bounds)
+print(gap.nonblocking, gap.gaps)
+run = hj.simulate(thermo, jnp.array([17.0]), "heat", 0.0, 5.0, {**pth, "off_at": 19.0})
+print(run.status_name, "at T =", np.asarray(run.final_state))"""),
+    ("md", """Resets into guards are allowed (section 3.7) and reported as chains: the ball thrown at the ceiling
+lands, by its plastic impact, inside the lift-off guard; the chain has length two and there is no cycle."""),
+    ("code", """ceiling_report = hj.check_properties(examples.ceiling_ball(), {"g": 9.8, "H": 2.0},
+                                     bounds={"flight": (-5.0, 5.0), "contact": (-5.0, 5.0)})
+print(ceiling_report)"""),
+]
+
 
 def build(name: str, cells, execute: bool = True) -> float:
     nb = nbformat.v4.new_notebook()
