@@ -29,3 +29,7 @@ from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
+from ._shooting import Shooting as Shooting
+from ._shooting import ShootingResult as ShootingResult
+from ._shooting import shoot as shoot
+from ._shooting import with_running_cost as with_running_cost
