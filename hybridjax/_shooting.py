@@ -232,7 +232,10 @@ def _run(problem: Shooting, params0, optimiser: optax.GradientTransformation, st
     def step(carry, i):
         current, opt_state = carry
         first = i == 0
-        updates, new_state = optimiser.update(current.grad, opt_state, current.params)
+        # optax's extra arguments, for the transformations that read them (L-BFGS's line search)
+        updates, new_state = optimiser.update(
+            current.grad, opt_state, current.params, value=current.value, grad=current.grad,
+            value_fn=lambda p: problem.loss(p)[0])
         proposal = problem.project(optax.apply_updates(current.params, updates))
         proposal = _select(first, current.params, proposal)
         it, ok, tries = _attempt(problem, current.params, proposal, current)
@@ -283,6 +286,7 @@ def shoot(
         raise ValueError(f"shoot: steps must be an int >= 0, got {steps!r}.")
     if not isinstance(optimiser, optax.GradientTransformation):
         raise TypeError(f"shoot: optimiser must be an optax.GradientTransformation, got {optimiser!r}.")
+    optimiser = optax.with_extra_args_support(optimiser)
     params0 = jax.tree_util.tree_map(lambda p: jnp.asarray(p, jnp.result_type(p, float)), params0)
     if batched:
         return eqx.filter_vmap(lambda p: _run(problem, p, optimiser, int(steps)))(params0)
