@@ -91,7 +91,8 @@ class Shooting(eqx.Module):
                  lower=None, upper=None, solver=diffrax.Tsit5(), stepsize_controller=None,
                  saveat=None, max_epochs=16, max_steps=4096, max_backtracks=8):
         if not isinstance(system, HybridSystem):
-            raise TypeError(f"Shooting: system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
+            raise TypeError(
+                f"Shooting: system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
         if not callable(cost):
             raise TypeError("Shooting: `cost` must be a function cost(params, sol) -> scalar.")
         system.mode_index(mode0)  # raises, naming the mode, when it is unknown

@@ -11,9 +11,7 @@ known in closed form, derived here:
 
 import math
 
-import diffrax
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -21,7 +19,7 @@ import pytest
 
 import hybridjax as hj
 
-from helpers import TIGHT, central_difference
+from helpers import TIGHT
 
 G, E, PHI = 9.8, 0.6, 0.9
 
