@@ -29,6 +29,9 @@ from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
+from ._ilqr import HybridILQRResult as HybridILQRResult
+from ._ilqr import HybridLQRProblem as HybridLQRProblem
+from ._ilqr import hybrid_ilqr as hybrid_ilqr
 from ._shooting import Shooting as Shooting
 from ._shooting import ShootingResult as ShootingResult
 from ._shooting import shoot as shoot
