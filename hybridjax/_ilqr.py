@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._multiple_shooting import rk4_flow
 from ._saltation import saltation_matrix
 from ._simulate import simulate
 from ._system import HybridSystem
@@ -119,17 +120,7 @@ class HybridLQRProblem(eqx.Module):
 
     def segment(self, mode, t_a, t_b, x, u):
         """The flow of `mode` from (t_a, x) to t_b (t_b < t_a integrates backward), by RK4."""
-        h = (t_b - t_a) / self.substeps
-
-        def rk4(x, i):
-            t = t_a + i * h
-            k1 = self.flow(mode, t, x, u)
-            k2 = self.flow(mode, t + h / 2, x + h / 2 * k1, u)
-            k3 = self.flow(mode, t + h / 2, x + h / 2 * k2, u)
-            k4 = self.flow(mode, t + h, x + h * k3, u)
-            return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), None
-
-        return jax.lax.scan(rk4, x, jnp.arange(self.substeps))[0]
+        return rk4_flow(lambda t, x: self.flow(mode, t, x, u), t_a, t_b, x, self.substeps)
 
     def saltation(self, transition, t, x, u):
         args = self.control_args(u)

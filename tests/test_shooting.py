@@ -15,6 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import optax
+import optimistix as optx
 import pytest
 
 import hybridjax as hj
@@ -85,6 +86,22 @@ def test_running_cost_integrates_along_the_flow():
     sol = KTH_IMPACT.execution(jnp.asarray(v))
     np.testing.assert_allclose(sol.states_before[:, 0], areas, rtol=1e-9)
     np.testing.assert_allclose(sol.states_after[:, 0], areas, rtol=1e-9)   # resets keep it
+
+
+def test_multiple_shooting_over_epochs_finds_the_kth_impact_speed():
+    # unknowns: v, the post-impact states z_1, z_2 and the three flight durations; residuals: the
+    # floor h = 0 at each epoch's end, continuity through the resets, and x = x* at the third impact
+    problem = hj.MultipleShooting(PLANAR, (0,) * K, _launch, lambda v, ts, xs: xs[-1, :1] - X_STAR,
+                                  args=BALL_ARGS, substeps=8)
+    v0 = jnp.asarray(3.5)
+    first_guess = hj.simulate(PLANAR, _launch(v0), "flight", 0.0, 20.0, BALL_ARGS, max_epochs=K)
+    result = hj.multiple_shooting(problem, v0, hj.EpochGuess.from_solution(first_guess, K))
+    assert result.result == optx.RESULTS.successful and float(result.max_residual) < 1e-10
+    # RK4 is exact on the quadratic flights: the closed form to rounding
+    np.testing.assert_allclose(result.params, V_STAR, rtol=1e-12)
+    np.testing.assert_allclose(result.event_times, _flight_times(V_STAR, K), rtol=1e-12)
+    np.testing.assert_allclose(result.states_before[:, 0], V_STAR * math.cos(PHI) * _flight_times(V_STAR, K),
+                               rtol=1e-12)
 
 
 # ----------------------------------------------------------------------------- thermostat
