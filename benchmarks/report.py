@@ -560,6 +560,7 @@ def _plot_trajopt(res: dict) -> str:
         ax.axhline(res["target_fraction"] * pb["initial_cost"], color="gray", lw=0.8, ls=":")
         ax.set(title=pb["name"], xlabel="iteration", ylabel="cost")
         ax.set_xscale("symlog", linthresh=10)
+        ax.set_xlim(left=0)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     return _save(fig, "trajopt.png")

@@ -4,7 +4,8 @@ Both minimise the same cost of the same discrete problem: controls held constant
 intervals of a time grid, each interval one hybrid execution (`simulate`), a quadratic cost on
 the states at the grid times. Hybrid iLQR: `hj.hybrid_ilqr` (saltation matrices in the
 backward pass, reference extension). Gradient descent: `optax.adam` on `jax.grad` of the
-rolled-out cost (reverse mode through every interval's `simulate`), one jitted step.
+rolled-out cost (reverse mode through every interval's `simulate`), one jitted step, at three
+learning rates.
 
 - ball: the bouncing ball with a vertical thrust tracks the passive ball (one impact) on 20
   intervals over [0, 1], from u = 2.5 (impact one interval late); the optimum is u = 0, cost 0.
@@ -44,7 +45,7 @@ def ball_problem():
     ref = _initial(hj.HybridLQRProblem(ball, cargs, x0, "flight", ts, jnp.zeros((n + 1, 2)), Q, 1e-3, 10 * Q),
                    jnp.zeros((n, 1))).xs
     problem = hj.HybridLQRProblem(ball, cargs, x0, "flight", ts, ref, Q, 1e-3, 10 * Q)
-    return problem, jnp.full((n, 1), 2.5), 0.1
+    return problem, jnp.full((n, 1), 2.5), (0.03, 0.1, 0.3)
 
 
 def hopper_problem():
@@ -59,7 +60,7 @@ def hopper_problem():
     problem = hj.HybridLQRProblem(hopper, lambda u: {"g": G, "k": 100.0, "l0": 1.0, "u": u}, jnp.array([1.2, 0.0]),
                                   "flight", ts, target, jnp.zeros((2, 2)), 1e-4, 1e3 * jnp.eye(2),
                                   lower=0.0, upper=60.0)
-    return problem, jnp.zeros((n, 1)), 1.0
+    return problem, jnp.zeros((n, 1)), (0.3, 1.0, 3.0)
 
 
 def run_ilqr(problem, u0, iterations):
@@ -99,10 +100,11 @@ def reach(costs, target, per_iteration):
 def main():
     out = dict(machine=machine_info(), target_fraction=1e-4, problems=[])
     for name, make, ilqr_iters, gd_steps in (("ball", ball_problem, 10, 300), ("hopper", hopper_problem, 10, 300)):
-        problem, u0, lr = make()
+        problem, u0, lrs = make()
         rows = {}
-        for method, (costs, per) in (("hybrid iLQR", run_ilqr(problem, u0, ilqr_iters)),
-                                      (f"adam (lr {lr:g})", run_gd(problem, u0, lr, gd_steps))):
+        runs = [("hybrid iLQR", run_ilqr(problem, u0, ilqr_iters))]
+        runs += [(f"adam (lr {lr:g})", run_gd(problem, u0, lr, gd_steps)) for lr in lrs]
+        for method, (costs, per) in runs:
             target = out["target_fraction"] * costs[0]
             its, secs = reach(costs, target, per)
             rows[method] = dict(costs=costs.tolist(), per_iteration_s=per, iterations_to_target=its,
