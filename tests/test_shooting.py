@@ -155,6 +155,27 @@ def test_thermostat_bound_is_active_when_the_optimum_lies_outside():
     assert np.all(np.asarray(result.params_history) <= 21.5)
 
 
+# ----------------------------------------------------------------------------- free final time
+
+V_UP, H_STAR = 5.0, 1.0
+# The ball thrown up from the floor at V_UP passes h = H_STAR first at the smaller root of
+# V_UP T - g T^2 / 2 = H_STAR.
+T_STAR = (V_UP - math.sqrt(V_UP**2 - 2 * G * H_STAR)) / G
+FREE_TIME = hj.Shooting(
+    hj.examples.bouncing_ball(), lambda T, sol: (sol.final_state[0] / H_STAR - 1) ** 2,
+    x0=jnp.array([0.0, V_UP]), mode0="flight", t1=lambda T: T, args=BALL_ARGS, max_epochs=2,
+    lower=jnp.asarray(0.05), upper=jnp.asarray(0.45), stepsize_controller=TIGHT)
+
+
+def test_free_final_time_within_bounds():
+    # dh/dT = V_UP - g T* = 2.32 at T*: the cost's curvature is 2 * 2.32^2 ~ 10.8. The second
+    # guess lies beyond the upper bound: its iterate 0 is the guess projected onto the bound.
+    result = hj.shoot(FREE_TIME, jnp.array([0.4, 0.9]), optax.sgd(0.08), steps=25, batched=True)
+    np.testing.assert_allclose(result.params, T_STAR, rtol=1e-10)
+    assert float(result.params_history[1, 0]) == 0.45
+    assert np.all(np.asarray(result.params_history) <= 0.45) and np.all(result.num_events == 0)
+
+
 # ----------------------------------------------------------------------------- event sequences
 
 T1 = 2.0
