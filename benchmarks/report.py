@@ -536,7 +536,9 @@ def trajopt(res: dict) -> list[str]:
                 "one hybrid execution. *ball*: the bouncing ball with a vertical thrust tracks the passive ball "
                 "through its impact from u = 2.5 (optimum u = 0, cost 0). *hopper*: a vertical hopper must reach "
                 "an apex of 1.5 at t = 0.9. *to target*: iterations and wall time (compile excluded) until the "
-                f"cost is below {res['target_fraction']:.0e} of the initial cost. See "
+                f"cost is below {res['target_fraction']:.0e} of the initial cost. *incomplete iterates*: iterates with "
+                "an interval whose execution stopped before its end (more events than the interval allows, a Zeno "
+                "execution): their cost is not the problem's; hybrid iLQR discards such trial rollouts. See "
                 "[Trajectory optimisation](../trajectory_optimisation.md).")
     rows = []
     for pb in res["problems"]:
@@ -544,9 +546,9 @@ def trajopt(res: dict) -> list[str]:
             its = "not reached" if r["iterations_to_target"] is None else (
                 f"{r['iterations_to_target']} it, {r['seconds_to_target']:.2f} s")
             rows.append([pb["name"], method, f"{pb['initial_cost']:.3g}", its, f"{r['final_cost']:.2e}",
-                         r["iterations"], f"{r['per_iteration_s'] * 1e3:.0f} ms"])
+                         r["iterations"], f"{r['per_iteration_s'] * 1e3:.0f} ms", r.get("incomplete_iterates", "")])
     out += _table(["problem", "method", "initial cost", "to target", "final cost", "iterations",
-                   "per iteration"], rows)
+                   "per iteration", "incomplete iterates"], rows)
     out += [f"![Cost against iteration]({_plot_trajopt(res)})", ""]
     return out
 
