@@ -89,9 +89,12 @@ def run_gd(problem, u0, lr, steps):
         updates, state = opt.update(g, state, u)
         return problem.clip(optax.apply_updates(u, updates)), state, cost, complete
 
-    # compiles: the first call's optimiser state (from `init`) and the later calls' (from `update`)
-    # differ in weak types, so two programs
-    jax.block_until_ready(step(*step(u0, opt.init(u0))[:2]))
+    # compiles: the arguments' weak types change over the first calls (`init`'s state, then
+    # `update`'s), each change a new program: a few untimed steps compile them all
+    u, state = u0, opt.init(u0)
+    for _ in range(5):
+        u, state = step(u, state)[:2]
+    jax.block_until_ready(u)
     u, state, costs, incomplete = u0, opt.init(u0), [], 0
     t = time.perf_counter()
     for _ in range(steps):
