@@ -6,9 +6,16 @@ execution of it (vmap it for thousands) and returns a `Solution`.
 """
 
 from . import examples as examples
+from ._ilqr import HybridILQRResult as HybridILQRResult
+from ._ilqr import HybridLQRProblem as HybridLQRProblem
+from ._ilqr import hybrid_ilqr as hybrid_ilqr
 from ._montecarlo import MonteCarloResult as MonteCarloResult
 from ._montecarlo import monte_carlo as monte_carlo
 from ._montecarlo import wilson_interval as wilson_interval
+from ._multiple_shooting import EpochGuess as EpochGuess
+from ._multiple_shooting import MultipleShooting as MultipleShooting
+from ._multiple_shooting import MultipleShootingResult as MultipleShootingResult
+from ._multiple_shooting import multiple_shooting as multiple_shooting
 from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
 from ._presets import PRESET_NAMES as PRESET_NAMES
@@ -22,6 +29,10 @@ from ._search import Witness as Witness
 from ._search import box_samples as box_samples
 from ._search import constraint_violation as constraint_violation
 from ._search import find_point as find_point
+from ._shooting import Shooting as Shooting
+from ._shooting import ShootingResult as ShootingResult
+from ._shooting import shoot as shoot
+from ._shooting import with_running_cost as with_running_cost
 from ._simulate import simulate as simulate
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._solution import Epoch as Epoch
