@@ -215,8 +215,9 @@ def departure_step_bound(jets, outgoing, fire) -> jax.Array:
     return fold(jnp.minimum, tau) if tau.shape[0] else jnp.asarray(jnp.inf, tau.dtype)
 
 
-def epoch_start(kern: Kernels, mode, t, y, args, h_prev, initial, *, carry: bool, rtol, atol,
-                event_tol, eps) -> EpochStart:
+def epoch_start(
+    kern: Kernels, mode, t, y, args, h_prev, initial, *, carry: bool, rtol, atol, event_tol, eps
+) -> EpochStart:
     """The start test of an epoch at (t, y) in `mode`: which watched function fires at once, and
     otherwise the epoch's first step.
 
@@ -242,8 +243,16 @@ def epoch_start(kern: Kernels, mode, t, y, args, h_prev, initial, *, carry: bool
         k, inside = jnp.array(0, jnp.int32), jnp.array(False)
     simultaneous = jnp.sum(fire[:K]) > 1 if K else jnp.array(False)
     h = jnp.minimum(first_step(initial, h_prev, carry), departure_step_bound(jets, outgoing, fire))
-    return EpochStart(fire=jnp.any(fire), k=k, g_start=g_start, F=F, finite=finite, h=sg(h),
-                      simultaneous=simultaneous, inside=inside)
+    return EpochStart(
+        fire=jnp.any(fire),
+        k=k,
+        g_start=g_start,
+        F=F,
+        finite=finite,
+        h=sg(h),
+        simultaneous=simultaneous,
+        inside=inside,
+    )
 
 
 # ---------------------------------------------------------------------------- a step
@@ -281,9 +290,11 @@ def step_stops(stuck, finite, next_h, t, eps, num_steps, max_steps) -> tuple:
     cannot shrink further (`NONFINITE`, `nonfinite_step`), then a collapsed step size
     (`STEP_COLLAPSE`, `step_collapsed`), then the step limit (`MAX_STEPS`: num_steps >=
     max_steps)."""
-    return ((stuck, Status.NONFINITE),
-            (step_collapsed(finite, next_h, t, eps), Status.STEP_COLLAPSE),
-            (num_steps >= max_steps, Status.MAX_STEPS))
+    return (
+        (stuck, Status.NONFINITE),
+        (step_collapsed(finite, next_h, t, eps), Status.STEP_COLLAPSE),
+        (num_steps >= max_steps, Status.MAX_STEPS),
+    )
 
 
 # ---------------------------------------------------------------------------- detection
@@ -444,8 +455,15 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
         step = jnp.where(d1 == 0, 0.0, xn - x)
         return a, b, xn, step, f_best, x_best, i + 1
 
-    init = (a, b, jnp.clip(x0, a, b), jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(jnp.inf, x0.dtype),
-            x0, jnp.array(0))
+    init = (
+        a,
+        b,
+        jnp.clip(x0, a, b),
+        jnp.asarray(jnp.inf, x0.dtype),
+        jnp.asarray(jnp.inf, x0.dtype),
+        x0,
+        jnp.array(0),
+    )
     _, _, _, _, f_best, x_best, _ = lax.while_loop(cond, body, init)
     return x_best, f_best
 
@@ -468,8 +486,9 @@ def event_brackets(values_at: Callable, det: Detection, s_ext, tol) -> Brackets:
 
         return jax.vmap(lowest)(jnp.arange(has.shape[0]), s_ext[i_d], s_ext[i_d + 1], x0_d)
 
-    x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine,
-                            lambda _: (x0_d, jnp.ones_like(x0_d)), None)
+    x_min, g_min = lax.cond(
+        eqxi.unvmap_any(jnp.any(suspect)), refine, lambda _: (x0_d, jnp.ones_like(x0_d)), None
+    )
     dip = suspect & (g_min < 0)
     a = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
     b = jnp.where(dip, x_min, s[j])
@@ -571,8 +590,9 @@ def blocks(k, num_transitions: int):
     return k >= num_transitions
 
 
-def jump_outcome(num_events, max_epochs: int, y_after, zero_length, zero_run,
-                 max_zero_epochs: int) -> JumpOutcome:
+def jump_outcome(
+    num_events, max_epochs: int, y_after, zero_length, zero_run, max_zero_epochs: int
+) -> JumpOutcome:
     """What a transition does: it is recorded if the record has room (num_events <
     max_epochs, else `MAX_EPOCHS`, the execution ending before it); applied if also its reset
     y_after is finite (else `NONFINITE`: the event kept, the execution ending at the pre-event
@@ -582,9 +602,11 @@ def jump_outcome(num_events, max_epochs: int, y_after, zero_length, zero_run,
     recorded = num_events < max_epochs
     applied = recorded & fold(jnp.logical_and, jnp.isfinite(y_after))
     zero_run = jnp.where(zero_length, zero_run + 1, 0)
-    stops = ((~recorded, Status.MAX_EPOCHS),
-             (recorded & ~applied, Status.NONFINITE),
-             (applied & (zero_run > max_zero_epochs), Status.CHATTERING))
+    stops = (
+        (~recorded, Status.MAX_EPOCHS),
+        (recorded & ~applied, Status.NONFINITE),
+        (applied & (zero_run > max_zero_epochs), Status.CHATTERING),
+    )
     return JumpOutcome(recorded, applied, zero_run, stops)
 
 

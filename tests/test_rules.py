@@ -88,9 +88,20 @@ def test_first_step_carries_the_proposal_only_when_asked():
 def test_epoch_start_of_the_ball_on_the_floor():
     # The guard h with flow (v, -g): L0 = h, L1 = v, L2 = -g.
     def start(v):
-        return R.epoch_start(BALL_KERN, jnp.asarray(0), jnp.asarray(0.0), jnp.array([0.0, v]),
-                             {"g": G, "e": 0.8}, jnp.asarray(0.0), jnp.asarray(1.0), carry=False,
-                             rtol=1e-8, atol=1e-8, event_tol=1e-12, eps=EPS)
+        return R.epoch_start(
+            BALL_KERN,
+            jnp.asarray(0),
+            jnp.asarray(0.0),
+            jnp.array([0.0, v]),
+            {"g": G, "e": 0.8},
+            jnp.asarray(0.0),
+            jnp.asarray(1.0),
+            carry=False,
+            rtol=1e-8,
+            atol=1e-8,
+            event_tol=1e-12,
+            eps=EPS,
+        )
 
     falling = start(-1.0)
     assert bool(falling.fire) and int(falling.k) == 0 and not bool(falling.inside)
@@ -100,9 +111,20 @@ def test_epoch_start_of_the_ball_on_the_floor():
     # departing: disarmed, and the first step capped at v / g = 0.1 (half the flight 2 v / g)
     assert not bool(leaving.fire) and float(leaving.g_start[0]) == 0.0
     assert float(leaving.h) == pytest.approx(0.98 / G, rel=1e-15)
-    high = R.epoch_start(BALL_KERN, jnp.asarray(0), jnp.asarray(0.0), jnp.array([1.0, 0.0]),
-                         {"g": G, "e": 0.8}, jnp.asarray(0.0), jnp.asarray(0.25), carry=False,
-                         rtol=1e-8, atol=1e-8, event_tol=1e-12, eps=EPS)
+    high = R.epoch_start(
+        BALL_KERN,
+        jnp.asarray(0),
+        jnp.asarray(0.0),
+        jnp.array([1.0, 0.0]),
+        {"g": G, "e": 0.8},
+        jnp.asarray(0.0),
+        jnp.asarray(0.25),
+        carry=False,
+        rtol=1e-8,
+        atol=1e-8,
+        event_tol=1e-12,
+        eps=EPS,
+    )
     assert not bool(high.fire) and float(high.g_start[0]) == 1.0 and float(high.h) == 0.25
 
 
@@ -125,14 +147,18 @@ def test_step_stops_precedence():
     assert [s for _, s in stops] == [Status.NONFINITE, Status.STEP_COLLAPSE, Status.MAX_STEPS]
     done, code = R.stop_first(jnp.array(False), jnp.asarray(0, jnp.int32), *stops)
     assert bool(done) and int(code) == int(Status.NONFINITE)  # all three hold: the first wins
-    done, code = R.stop_first(jnp.array(False), jnp.asarray(0, jnp.int32),
-                              *R.step_stops(jnp.array(False), jnp.array(True), 0.5, 1.0, EPS, 10, 10))
+    done, code = R.stop_first(
+        jnp.array(False),
+        jnp.asarray(0, jnp.int32),
+        *R.step_stops(jnp.array(False), jnp.array(True), 0.5, 1.0, EPS, 10, 10),
+    )
     assert int(code) == int(Status.MAX_STEPS)
 
 
 def test_stop_first_keeps_the_status_of_a_finished_execution():
-    done, code = R.stop_first(jnp.array(True), jnp.asarray(int(Status.BLOCKED), jnp.int32),
-                              (jnp.array(True), Status.NONFINITE))
+    done, code = R.stop_first(
+        jnp.array(True), jnp.asarray(int(Status.BLOCKED), jnp.int32), (jnp.array(True), Status.NONFINITE)
+    )
     assert bool(done) and int(code) == int(Status.BLOCKED)
     done, code = R.stop_first(jnp.array(False), jnp.asarray(0, jnp.int32), (jnp.array(False), Status.ZENO))
     assert not bool(done) and int(code) == 0
@@ -180,11 +206,13 @@ def test_locate_root_brackets_the_root_from_the_right():
 
 
 def test_locate_minimum():
-    x, f = R.locate_minimum(lambda x: (x - 0.3) ** 2 + 0.1, jnp.asarray(0.0), jnp.asarray(1.0),
-                            jnp.asarray(0.5), 1e-12)
+    x, f = R.locate_minimum(
+        lambda x: (x - 0.3) ** 2 + 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12
+    )
     assert float(x) == pytest.approx(0.3, abs=1e-8) and float(f) == pytest.approx(0.1, abs=1e-15)
-    x, f = R.locate_minimum(lambda x: (x - 0.3) ** 2 - 0.1, jnp.asarray(0.0), jnp.asarray(1.0),
-                            jnp.asarray(0.5), 1e-12)
+    x, f = R.locate_minimum(
+        lambda x: (x - 0.3) ** 2 - 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12
+    )
     assert float(f) < 0.0 and (float(x) - 0.3) ** 2 < 0.1  # a point inside, found early
 
 
@@ -194,8 +222,7 @@ def test_event_brackets_turn_a_dip_into_a_bracket():
     def values_at(x):
         return jnp.stack([(x - 1.5) ** 2 - 0.01])
 
-    det = R.Detection(jnp.array([False]), jnp.array([0]), jnp.array([True]), jnp.array([1]),
-                      jnp.array([1.5]))
+    det = R.Detection(jnp.array([False]), jnp.array([0]), jnp.array([True]), jnp.array([1]), jnp.array([1.5]))
     br = R.event_brackets(values_at, det, jnp.array([0.0, 1.0, 2.0]), 1e-12)
     assert bool(br.has[0]) and float(br.a[0]) == 1.0 and float(br.b[0]) == 1.5
     ev = R.first_event(values_at, br, 1e-12, jnp.asarray(2.0))
@@ -246,8 +273,9 @@ def test_event_point_derivatives_by_the_implicit_function_theorem():
     def t_event(h0, t0):
         fall = _FreeFall(t0, h0, jnp.asarray(0.0))
         t_star = jax.lax.stop_gradient(t0 + jnp.sqrt(2 * h0 / G))
-        t_ev, y_before, grazing = R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, fall,
-                                                {"g": G, "e": 0.8})
+        t_ev, y_before, grazing = R.event_point(
+            BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, fall, {"g": G, "e": 0.8}
+        )
         return t_ev, (y_before, grazing)
 
     h0, t0 = jnp.asarray(1.0), jnp.asarray(0.5)
@@ -280,14 +308,18 @@ def test_jump_outcome():
     chat = R.jump_outcome(jnp.asarray(0), 3, jnp.array([1.0, 2.0]), jnp.array(True), jnp.asarray(16), 16)
     assert int(chat.zero_run) == 17 and [s for p, s in chat.stops if bool(p)] == [Status.CHATTERING]
     # lanes last: finiteness over the leading (component) axis
-    lanes = R.jump_outcome(jnp.array([0, 0]), 3, jnp.array([[1.0, 1.0], [2.0, np.inf]]), jnp.array(False),
-                           jnp.array([0, 0]), 16)
+    lanes = R.jump_outcome(
+        jnp.array([0, 0]), 3, jnp.array([[1.0, 1.0], [2.0, np.inf]]), jnp.array(False), jnp.array([0, 0]), 16
+    )
     np.testing.assert_array_equal(lanes.applied, [True, False])
 
 
 def test_push_recent_and_saved_in_step():
-    np.testing.assert_array_equal(R.push_recent(jnp.array([np.inf, 1.0, 2.0]), jnp.asarray(3.0)), [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(
+        R.push_recent(jnp.array([np.inf, 1.0, 2.0]), jnp.asarray(3.0)), [1.0, 2.0, 3.0]
+    )
     np.testing.assert_array_equal(R.push_recent(jnp.zeros((2, 2)), jnp.ones(2)), [[0.0, 0.0], [1.0, 1.0]])
     # (t, t_end] = (1, 1.5]
-    np.testing.assert_array_equal(R.saved_in_step(jnp.array([0.5, 1.0, 1.25, 1.5, 2.0]), 1.0, 1.5),
-                                  [False, False, True, True, False])
+    np.testing.assert_array_equal(
+        R.saved_in_step(jnp.array([0.5, 1.0, 1.25, 1.5, 2.0]), 1.0, 1.5), [False, False, True, True, False]
+    )
