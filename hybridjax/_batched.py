@@ -44,8 +44,14 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
+from ._fast_rk import (
+    explicit_rk_step,
+    i_controller,
+    rk_error_estimate,
+    scaled_error,
+    weighted_sum,
+)
 from ._fast_rk import fold as _fold
-from ._fast_rk import inverse_root, weighted_sum
 from ._kernels import Kernels, mask_inputs
 from ._rules import (
     Detection,
@@ -68,7 +74,7 @@ from ._rules import (
     stop_first,
 )
 from ._status import Status
-from ._zeno import detect_zeno
+from ._zeno import ZenoOptions, detect_zeno
 
 sg = lax.stop_gradient
 
@@ -441,7 +447,7 @@ class BatchedLoop:
 
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
-                 zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int,
+                 zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
                  block: int | tuple | None = None, save_ts=None):
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
@@ -454,7 +460,7 @@ class BatchedLoop:
         self.max_epochs, self.max_steps = max_epochs, max_steps
         self.interior_points, self.event_tol = interior_points, event_tol
         self.max_zero_epochs, self.zeno = max_zero_epochs, zeno
-        self.recent = (zeno["window"] + 2) if zeno is not None else 2
+        self.recent = (zeno.window + 2) if zeno is not None else 2
         self.loop_kind, self.checkpoints, self.dtype = loop_kind, checkpoints, dtype
         self.eps = jnp.finfo(dtype).eps
         self.N = lanes
@@ -678,7 +684,7 @@ class BatchedLoop:
         st = _stop(st, *((mask & pred, status) for pred, status in out.stops))
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
-                lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
+                lambda T, X, t1: detect_zeno(T, X, t1, self.zeno), in_axes=-1, out_axes=-1
             )(st.recent_times, st.recent_states, st.t1)
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
@@ -784,34 +790,23 @@ class BatchedLoop:
         hh = t_next - t
         if not solver.fsal:
             f0 = self.flows(st.mode, t, y, args)
-        ks, z, f_last = [f0 * hh], y, f0
         # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i apart,
         # XLA computes each stage twice, in two fusions.
-        last = len(solver.c) - 1
-        for i, (c_i, a_i) in enumerate(zip(solver.c, solver.a, strict=True)):
-            z = y + weighted_sum(a_i, ks, y)
-            if i < last:
-                ks.append(self.flows(st.mode, t + c_i * hh, z, args, scale=hh))
-            else:
-                f_last = self.flows(st.mode, t + c_i * hh, z, args)
-                ks.append(f_last * hh)
-        y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
-        # The I controller of `FastIController`, per lane.
-        order = c._get_error_order(self.error_order)
+        y1, ks, f_last = explicit_rk_step(
+            solver, lambda tt, z, scale: self.flows(st.mode, tt, z, args, scale=scale), t, y, hh, f0)
 
         def error_norm(ops):
             y, y1, ks = ops
-            y_err = weighted_sum(solver.b_err, ks, y)
-            y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
-            scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
-            e = jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0])
+            e = scaled_error(y, y1, rk_error_estimate(solver, ks, y), c.rtol, c.atol)
             return e, _rows_all(jnp.isfinite(y1))
 
         # Read by many fusions below, each of which would recompute it from the stages.
         e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
-        keep = (e < 1) & finite_y1
-        factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
-                             jnp.where(keep, c.factormax, c.safety)))
+        # The I controller of `FastIController`, per lane (a step with a non-finite value is
+        # rejected and shrunk by `nonfinite_step`, whatever the factor).
+        keep, factor = i_controller(e, c._get_error_order(self.error_order), c.safety, c.factormin,
+                                    c.factormax)
+        keep = keep & finite_y1
         if num_watch:
             hs = sg(hh)
             times = [sg(t) if i == 0 else sg(t_next) if i == len(self.thetas) - 1 else sg(t) + hs * float(th)

@@ -21,8 +21,13 @@ carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
     factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),
 
 q the solver's error order (its order + 1 for an ODE, as diffrax counts it). `engine="auto"`
-uses both where they give diffrax's steps exactly. (The batched engine computes e^(-1/q) by
-`inverse_root`, within a few ulps of `pow`: its steps agree with these to rounding.)
+uses both where they give diffrax's steps to rounding (e^(-1/q) by `inverse_root`, within a
+few ulps of `pow`).
+
+The step (`explicit_rk_step`, `rk_error_estimate`) and the step-size rule (`scaled_error`,
+`i_controller`) are written once, for one execution, over the leading (component) axis of the
+state: the per-execution engine calls them through `UnrolledERK` and `FastIController`, the
+batched engine on its lanes-last (n, lanes) arrays, where they broadcast over the lanes.
 """
 
 from typing import Any
@@ -104,6 +109,58 @@ def can_use_fast_controller(controller) -> bool:
     return plain and c.norm is optx.rms_norm
 
 
+def explicit_rk_step(tab, field, t0, y0, h, f0):
+    """One explicit Runge-Kutta step of size h from (t0, y0) with the tableau `tab` (its `c`,
+    `a` rows, `b_sol`, `ssal`), the first stage's field value f0 given:
+
+        k_1 = h f0,   k_i = h F(t0 + c_i h, y0 + sum_{j<i} a_ij k_j),   y1 = y0 + sum_i b_i k_i
+
+    (y1 the last stage's state for an SSAL tableau). `field(t, y, scale)` is F(t, y) times
+    `scale` (h for every stage but the last), or F(t, y) for `scale` None (the last, whose value
+    an FSAL tableau reuses as the next step's f0). Returns `(y1, ks, f_last)`.
+    """
+    ks, z, f_last = [f0 * h], y0, f0
+    last = len(tab.c) - 1
+    for i, (c_i, a_i) in enumerate(zip(tab.c, tab.a, strict=True)):
+        z = y0 + weighted_sum(a_i, ks, y0)
+        if i < last:
+            ks.append(field(t0 + c_i * h, z, h))
+        else:
+            f_last = field(t0 + c_i * h, z, None)
+            ks.append(f_last * h)
+    y1 = z if tab.ssal else y0 + weighted_sum(tab.b_sol, ks, y0)
+    return y1, ks, f_last
+
+
+def rk_error_estimate(tab, ks, y0):
+    """The embedded error estimate of a step, err = sum_i b^err_i k_i."""
+    return weighted_sum(tab.b_err, ks, y0)
+
+
+def scaled_error(y0, y1, y_err, rtol, atol):
+    """The step's error relative to the tolerances, an RMS over the components (leading axis):
+
+        e = sqrt( sum_i (err_i / (atol + rtol max(|y0_i|, |y1_i|)))^2 / n ),
+
+    with y1 read as y0 where it has a NaN (diffrax's rule). No gradient is taken through it."""
+    y0, y1, y_err = lax.stop_gradient((y0, y1, y_err))
+    y1 = jnp.where(fold(jnp.logical_or, jnp.isnan(y1)), y0, y1)
+    scale = atol + rtol * jnp.maximum(jnp.abs(y0), jnp.abs(y1))
+    return jnp.sqrt(fold(jnp.add, jnp.square(y_err / scale)) / y0.shape[0])
+
+
+def i_controller(e, order, safety, factormin, factormax):
+    """The I controller's step-size rule: keep the step when e < 1, and scale it by
+
+        factor = clip(safety e^(-1/q), [1 if kept else factormin, factormax if kept else safety]),
+
+    q the solver's error order (`inverse_root`). Returns `(keep, factor)`, no gradients."""
+    keep = e < 1
+    lo = jnp.where(keep, 1.0, factormin)
+    hi = jnp.where(keep, factormax, safety)
+    return keep, lax.stop_gradient(jnp.clip(safety * inverse_root(e, order), lo, hi))
+
+
 class UnrolledERK:
     """`solver`'s step with its stages unrolled; otherwise the diffrax solver (init, interpolation,
     error order are delegated to it)."""
@@ -126,27 +183,18 @@ class UnrolledERK:
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
 
-        def vf(t, y):
-            return terms.vf(t, y, args)
-
-        def combo(coeffs, ks):
-            return weighted_sum(coeffs, ks, y0)
+        def field(t, y, scale):
+            F = terms.vf(t, y, args)
+            return F if scale is None else F * scale
 
         if self.fsal:
             _, f_prev = solver_state
             # After a jump (or at the start) the stored last stage is stale: evaluate f0.
-            f0 = jnp.where(made_jump, vf(t0, y0), f_prev)
+            f0 = jnp.where(made_jump, terms.vf(t0, y0, args), f_prev)
         else:
-            f0 = vf(t0, y0)
-        ks = [f0 * h]
-        z = y0
-        f_last = f0
-        for c_i, a_i in zip(self.c, self.a, strict=True):
-            z = y0 + combo(a_i, ks)
-            f_last = vf(t0 + c_i * h, z)
-            ks.append(f_last * h)
-        y1 = z if self.ssal else y0 + combo(self.b_sol, ks)
-        y_err = combo(self.b_err, ks)
+            f0 = terms.vf(t0, y0, args)
+        y1, ks, f_last = explicit_rk_step(self, field, t0, y0, h, f0)
+        y_err = rk_error_estimate(self, ks, y0)
         dense_info = dict(y0=y0, y1=y1, k=jnp.stack(ks))
         new_state = (jnp.array(False), f_last) if self.fsal else None
         return y1, y_err, dense_info, new_state, diffrax.RESULTS.successful
@@ -199,17 +247,9 @@ class FastIController:
 
     def adapt_step_size(self, t0, t1, y0, y1, args, y_err, error_order, controller_state) -> Any:
         c = self.controller
-        dtype = y0.dtype
-        error_order = c._get_error_order(error_order)
-        y1 = jnp.where(jnp.isnan(y1).any(), y0, y1)
-        scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y0), jnp.abs(y1))
-        e = lax.stop_gradient(jnp.sqrt(jnp.mean(jnp.square(y_err / scale))))
-        keep = e < 1
-        factor = c.safety * (1 / e) ** (1 / error_order)
-        lo = jnp.where(keep, 1.0, c.factormin)
-        hi = jnp.where(keep, c.factormax, c.safety)
-        factor = lax.stop_gradient(jnp.clip(factor, lo, hi))
-        dt = (t1 - t0) * factor.astype(dtype)
+        e = scaled_error(y0, y1, y_err, c.rtol, c.atol)
+        keep, factor = i_controller(e, c._get_error_order(error_order), c.safety, c.factormin, c.factormax)
+        dt = (t1 - t0) * factor.astype(y0.dtype)
         next_t0 = jnp.where(keep, t1, t0)
         next_t1 = next_t0 + dt
         return keep, next_t0, next_t1, jnp.array(False), controller_state, diffrax.RESULTS.successful

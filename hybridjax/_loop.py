@@ -63,7 +63,7 @@ from ._rules import (
     stop_first,
 )
 from ._status import Status
-from ._zeno import detect_zeno
+from ._zeno import ZenoOptions, detect_zeno
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -162,14 +162,14 @@ class Loop:
         interior_points: int,
         event_tol,
         max_zero_epochs: int,
-        zeno: dict | None,
+        zeno: ZenoOptions | None,
         loop_kind: str,
         checkpoints,
         dtype,
     ):
         self.kern = Kernels(system, args, dtype)
         self.zeno = zeno
-        self.recent = (zeno["window"] + 2) if zeno is not None else 2
+        self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
         self.t1 = t1
         self.args = args
@@ -348,7 +348,7 @@ class Loop:
 
     def zeno_stage(self, st: LoopState, args) -> LoopState:
         """After an event: if event times accumulate before t1, stop with ZENO or complete."""
-        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, **self.zeno)
+        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, self.zeno)
         is_zeno = is_zeno & ~st.done
         st = eqx.tree_at(
             lambda s: (s.zeno_time, s.zeno_state),

@@ -15,8 +15,9 @@ functions and tests):
 - a step: `nonfinite_step`, `step_collapsed`, `step_stops`;
 - detection on a step's dense output: `crossing`, `dip_interval`, `first_crossings`,
   `dip_candidates`, `dip_filter`;
-- location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`, and the
-  simultaneity rule `simultaneous_set`), `event_point` (the implicit-function event time);
+- location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`; the guards
+  reached at one instant, `simultaneous_set`, and the simultaneity rule,
+  `resolve_simultaneous`), `event_point` (the implicit-function event time);
 - the jump: `blocks`, `jump_outcome`, `push_recent`;
 - saving: `saved_in_step`;
 - the precedence of statuses: `stop_first`.
@@ -235,13 +236,8 @@ def epoch_start(
     fire, g_start = start_decision(jets, outgoing, eps)
     F = kern.flow(mode, t, y, args)
     finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets.L0, 0.0)))
-    K = kern.num_transitions
-    if kern.num_watch:
-        k = jnp.argmax(fire).astype(jnp.int32)
-        inside = strictly_inside(jets)[k]
-    else:
-        k, inside = jnp.array(0, jnp.int32), jnp.array(False)
-    simultaneous = jnp.sum(fire[:K]) > 1 if K else jnp.array(False)
+    k, simultaneous = resolve_simultaneous(fire, kern.num_transitions)
+    inside = strictly_inside(jets)[k] if kern.num_watch else jnp.array(False)
     h = jnp.minimum(first_step(initial, h_prev, carry), departure_step_bound(jets, outgoing, fire))
     return EpochStart(
         fire=jnp.any(fire),
@@ -496,16 +492,28 @@ def event_brackets(values_at: Callable, det: Detection, s_ext, tol) -> Brackets:
 
 
 def simultaneous_set(has, tk, t_min, tol, g_at, g_from):
-    """The simultaneity rule: which watched functions are reached at the same instant as the
-    first event, at t_min.
+    """Which watched functions are reached at the same instant as the first event, at t_min.
 
     Those with an event located within the event-time tolerance of t_min, tk <= t_min + tol,
     and those that are <= 0 at t_min but were > 0 at the start of the earliest bracket (their
-    own bracket may be narrower than the samples): g(t_min) <= 0 < g(a_first). The first of
-    them in listing order fires (`first_event`).
+    own bracket may be narrower than the samples): g(t_min) <= 0 < g(a_first). Which of them
+    fires: `resolve_simultaneous`.
     """
     any_event = jnp.any(has)
     return has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & any_event)
+
+
+def resolve_simultaneous(reached, num_counted: int | None = None):
+    """The simultaneity rule: of the watched functions reached at one instant (`reached`, in
+    listing order: guards in the order of the system's transitions, then domain components),
+    the first fires; the event is *simultaneous* when more than one of the first `num_counted`
+    (all: None) was reached. Used at the start of an epoch (`epoch_start`, counting the
+    guards) and within a step (`first_event`). Returns `(index, simultaneous)`; index 0 when
+    none was reached."""
+    if reached.shape[0] == 0:
+        return jnp.array(0, jnp.int32), jnp.array(False)
+    counted = reached if num_counted is None else reached[:num_counted]
+    return jnp.argmax(reached).astype(jnp.int32), jnp.sum(counted) > 1
 
 
 def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
@@ -527,9 +535,9 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
         cand = simultaneous_set(has, tk, t_min, tol, values_at(t_at), values_at(a[first]))
-        i = jnp.argmax(cand).astype(jnp.int32)
+        i, simultaneous = resolve_simultaneous(cand)
         tk = jnp.where(cand & ~has, t_min, tk)
-        return EventChoice(jnp.where(any_event, tk[i], t_end), i, jnp.sum(cand) > 1)
+        return EventChoice(jnp.where(any_event, tk[i], t_end), i, simultaneous)
 
     def none(_):
         return EventChoice(t_end, jnp.array(0, jnp.int32), jnp.array(False))

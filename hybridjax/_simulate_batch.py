@@ -18,6 +18,7 @@ from ._solution import Solution
 from ._system import HybridSystem
 from ._transforms import compiled_call_modes, naming_the_forward_mode_fix
 from ._validation import check_time_span
+from ._zeno import ZenoOptions, zeno_options
 
 
 def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
@@ -94,7 +95,7 @@ def simulate_batch(
     event_tol: float | None = None,
     interior_points: int = 4,
     max_zero_epochs: int = 16,
-    zeno: bool = True,
+    zeno: bool | ZenoOptions = True,
     zeno_window: int = 3,
     zeno_ratio_tol: float = 0.05,
     zeno_max_ratio: float = 0.99,
@@ -206,6 +207,7 @@ def simulate_batch(
                 adjoint=adjoint)
     dtype, kind, checkpoints, solver_p, controller, event_tol_v = _checked_options(
         system, x0_arr[0], lane_args, **opts)
+    zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
     args = promote_args(args, dtype)
     per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
     refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
@@ -256,8 +258,7 @@ def simulate_batch(
             solver=UnrolledERK(solver_p), controller=controller_, dt0=dt0,
             max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
             event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
-            zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
-                      max_ratio=float(zeno_max_ratio)) if zeno else None,
+            zeno=zeno_opts,
             loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
             save_ts=save_ts_)
         final, rec = loop.run(t0, y0.T, m0)

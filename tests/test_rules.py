@@ -6,6 +6,7 @@ its lanes); `tests/test_architecture.py` checks that both do. Whole runs are tes
 
 import math
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,6 +15,7 @@ import pytest
 
 from hybridjax import _rules as R
 from hybridjax import examples
+from hybridjax._fast_rk import UnrolledERK, explicit_rk_step, i_controller, rk_error_estimate, scaled_error
 from hybridjax._kernels import GuardJets, Kernels
 from hybridjax._status import Status
 
@@ -323,3 +325,46 @@ def test_push_recent_and_saved_in_step():
     np.testing.assert_array_equal(
         R.saved_in_step(jnp.array([0.5, 1.0, 1.25, 1.5, 2.0]), 1.0, 1.5), [False, False, True, True, False]
     )
+
+
+# ---------------------------------------------------------------------------- the step
+def test_explicit_rk_step_of_heun_on_exponential_growth():
+    # Heun on y' = y: k1 = h y0, k2 = h (y0 + k1), y1 = y0 + (k1 + k2) / 2 = y0 (1 + h + h^2 / 2);
+    # error estimate (b - b_err) . k = (k1 - k2) / 2 up to sign = -h^2 y0 / 2.
+    tab = UnrolledERK(diffrax.Heun())
+    y0, h = jnp.array([2.0]), 0.1
+
+    def field(t, y, scale):
+        return y if scale is None else y * scale
+
+    y1, ks, f_last = explicit_rk_step(tab, field, 0.0, y0, h, y0)
+    np.testing.assert_allclose(y1, 2.0 * (1 + h + h * h / 2), rtol=1e-15)
+    np.testing.assert_allclose(f_last, 2.0 * (1 + h), rtol=1e-15)  # F at the last stage
+    np.testing.assert_allclose(jnp.abs(rk_error_estimate(tab, ks, y0)), h * h * 2.0 / 2, rtol=1e-13)
+
+
+def test_scaled_error_and_i_controller():
+    # err / (atol + rtol max|y|) = (3e-6 / 1e-6, 4e-6 / 2e-6) = (3, 2): e = sqrt((9 + 4) / 2)
+    e = scaled_error(jnp.array([0.0, 1.0]), jnp.array([0.0, -1.0]), jnp.array([3e-6, 4e-6]), 1e-6, 1e-6)
+    assert float(e) == pytest.approx(math.sqrt(6.5), rel=1e-14)
+    # a NaN in y1 reads y0 in the scale; lanes last: one e per column
+    e = scaled_error(
+        jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6
+    )
+    np.testing.assert_allclose(e, [2.0, 2.0], rtol=1e-14)
+    # e = 1/32, q = 5: 0.9 * 2 = 1.8 (kept); e = 32: 0.9 / 2 = 0.45 (rejected, in [0.2, 0.9])
+    keep, factor = i_controller(jnp.array([1 / 32, 32.0, 1e-30, 1e30]), 5, 0.9, 0.2, 10.0)
+    np.testing.assert_array_equal(keep, [True, False, True, False])
+    np.testing.assert_allclose(factor, [1.8, 0.45, 10.0, 0.2], rtol=1e-14)
+
+
+def test_resolve_simultaneous_first_listed_fires():
+    index, simultaneous = R.resolve_simultaneous(jnp.array([False, True, True]))
+    assert int(index) == 1 and bool(simultaneous)
+    index, simultaneous = R.resolve_simultaneous(jnp.array([False, True, False]))
+    assert int(index) == 1 and not bool(simultaneous)
+    # counting the first two only (the guards, at an epoch's start)
+    index, simultaneous = R.resolve_simultaneous(jnp.array([True, False, True]), 2)
+    assert int(index) == 0 and not bool(simultaneous)
+    index, simultaneous = R.resolve_simultaneous(jnp.zeros((0,), bool))
+    assert int(index) == 0 and not bool(simultaneous)
