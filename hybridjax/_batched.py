@@ -72,6 +72,7 @@ from ._rules import (
     step_end,
     step_stops,
     stop_first,
+    zeno_completion,
 )
 from ._status import Status
 from ._zeno import ZenoOptions, detect_zeno
@@ -639,20 +640,15 @@ class BatchedLoop:
         return lax.cond(jnp.any(ended), run, lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ jump
-    def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool, inside=None):
-        """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
-        the caller); then stop on too many epochs, non-finite values, chattering or Zeno.
-        `st` is the block of lanes (`on_block`) the jumps can happen on: the record is written
-        from those alone."""
-        K = self.kern.num_transitions
-        out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
-                           self.max_zero_epochs)
-        kept, jumped = mask & out.recorded, mask & out.applied
-        target = self.kern.targets[jnp.clip(k, 0, K - 1)]
+    def record(self, st: Lanes, rec: LaneRecord, kept, k, t_ev, target, y_before, y_after,
+               simultaneous=None, grazing=None, inside=None) -> LaneRecord:
+        """`rec` with event k at t_ev written as the next event (`num_events`) of the lanes in
+        `kept` (the others write to the row not returned). `st` is the block of lanes
+        (`on_block`) the events can happen on: the record is written from those alone."""
         row = jnp.where(kept, st.num_events, 0)
         # num_exec: the row not returned (lanes without a kept event, a block's spare slots).
         ids = jnp.where(kept, st.exec_id, self.num_exec)
+        no = jnp.zeros_like(kept)
 
         def put(a, v, col=row):
             return a.at[ids, col].set(v.astype(a.dtype))
@@ -660,28 +656,47 @@ class BatchedLoop:
         def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
             return a.at[ids, row].set(v.T.astype(a.dtype))
 
-        inside = jnp.zeros_like(grazing) if inside is None else inside
-        rec = eqx.tree_at(
+        return eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
                        r.inside_guard, r.states_before, r.states_after), rec,
             (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
-             put(rec.simultaneous, simultaneous), put(rec.grazing, grazing), put(rec.inside_guard, inside),
+             put(rec.simultaneous, no if simultaneous is None else simultaneous),
+             put(rec.grazing, no if grazing is None else grazing),
+             put(rec.inside_guard, no if inside is None else inside),
              put_state(rec.states_before, y_before), put_state(rec.states_after, y_after)))
-        recent_times = jnp.where(kept, push_recent(st.recent_times, t_ev), st.recent_times)
-        recent_states = jnp.where(kept, push_recent(st.recent_states, y_after), st.recent_states)
-        st = eqx.tree_at(
+
+    def begin_epoch(self, st: Lanes, mask, kept, t, y, mode, zero_run) -> Lanes:
+        """The lanes in `mask` at the start of an epoch at (t, y) in `mode`, after an event
+        (recorded where `kept`)."""
+        return eqx.tree_at(
             lambda s: (s.t, s.y, s.mode, s.at_start, s.zero_run, s.num_events, s.recent_times,
                        s.recent_states),
             st,
-            (jnp.where(mask, t_ev, st.t),
-             jnp.where(jumped, y_after, jnp.where(mask, y_before, st.y)),
-             jnp.where(jumped, target, st.mode),
-             st.at_start | jumped,
-             jnp.where(jumped, out.zero_run, st.zero_run),
+            (jnp.where(mask, t, st.t), jnp.where(mask, y, st.y), jnp.where(mask, mode, st.mode),
+             st.at_start | mask, jnp.where(mask, zero_run, st.zero_run),
              st.num_events + kept.astype(jnp.int32),
-             recent_times, recent_states),
+             jnp.where(kept, push_recent(st.recent_times, t), st.recent_times),
+             jnp.where(kept, push_recent(st.recent_states, y), st.recent_states)),
         )
+
+    def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
+             grazing, zero_length: bool, args, inside=None):
+        """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
+        the caller); then stop on too many epochs, non-finite values, chattering or Zeno, or
+        complete a Zeno execution (`zeno_completion`). `st` is the block of lanes (`on_block`)
+        the jumps can happen on, `args` theirs. Also returns the lanes that completed."""
+        K = self.kern.num_transitions
+        out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
+                           self.max_zero_epochs)
+        kept, jumped = mask & out.recorded, mask & out.applied
+        target = self.kern.targets[jnp.clip(k, 0, K - 1)]
+        rec = self.record(st, rec, kept, k, t_ev, target, y_before, y_after, simultaneous, grazing, inside)
+        # Where the reset is not applied (not finite), the execution ends at the pre-event state.
+        st = self.begin_epoch(st, jumped, kept, t_ev, y_after, target, out.zero_run)
+        st = eqx.tree_at(lambda s: (s.t, s.y), st,
+                         (jnp.where(mask, t_ev, st.t), jnp.where(mask & ~jumped, y_before, st.y)))
         st = _stop(st, *((mask & pred, status) for pred, status in out.stops))
+        completed = jnp.zeros_like(mask)
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
                 lambda T, X, t1: detect_zeno(T, X, t1, self.zeno), in_axes=-1, out_axes=-1
@@ -689,8 +704,17 @@ class BatchedLoop:
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
-            st = _stop(st, (z, Status.ZENO))
-        return st, rec
+            if self.system.completions:
+                comp = self.lane_map(lambda m, zz, tt, xx, a: zeno_completion(self.kern, m, zz, tt, xx, a),
+                                     st.mode, z, t_inf, x_inf, args=args)
+                completed = comp.completes
+                full = st.num_events >= self.max_epochs
+                rec = self.record(st, rec, completed & ~full, comp.index, comp.t, comp.target, comp.x,
+                                  comp.y_after)
+                st = self.begin_epoch(st, completed, completed & ~full, comp.t, comp.y_after, comp.target, 0)
+                st = _stop(st, (completed & full, Status.MAX_EPOCHS))
+            st = _stop(st, (z & ~completed, Status.ZENO))
+        return st, rec, completed
 
     # ------------------------------------------------------------------ start of an epoch
     def _start_lane(self, t, y, mode, h_prev, t1, args, after_step: bool = False) -> "LaneStart":
@@ -736,9 +760,9 @@ class BatchedLoop:
             st = _stop(st, (go & (st.t >= st.t1), Status.T1_REACHED))
             st = _stop(st, (fire & blocks(start.k, K), Status.BLOCKED))
             if K:
-                st, rec = self.jump(st, rec, fire & ~blocks(start.k, K), start.k, st.t, st.y, y_after,
-                                    start.simultaneous, jnp.zeros_like(fire), zero_length=True,
-                                    inside=start.inside)
+                st, rec, _ = self.jump(st, rec, fire & ~blocks(start.k, K), start.k, st.t, st.y, y_after,
+                                       start.simultaneous, jnp.zeros_like(fire), zero_length=True,
+                                       args=self.lane_args(st_all, idx), inside=start.inside)
             st = _stop(st, (active_now & ~start.finite, Status.NONFINITE))
             return _scatter_lanes(st_all, b0, st, idx), rec
 
@@ -889,13 +913,14 @@ class BatchedLoop:
                 new = _stop(new, (blocked, Status.BLOCKED))
                 if K:
                     jumping = ev & ~blocks(out.k, K)
-                    new, rec = self.jump(new, rec, jumping, out.k, out.t_ev, out.y_before,
-                                         out.y_after, out.simultaneous, out.grazing,
-                                         zero_length=False)
+                    new, rec, completed = self.jump(new, rec, jumping, out.k, out.t_ev, out.y_before,
+                                                    out.y_after, out.simultaneous, out.grazing,
+                                                    zero_length=False, args=self.lane_args(st, idx))
                     # The new epoch's start test was done with the event: where no guard fires
-                    # at once, start it here (the start stage handles the rest next iteration).
-                    go = (jumping & new.at_start & ~new.done & ~out.next.fire & out.next.finite
-                          & (new.t < new.t1))
+                    # at once, start it here (the start stage handles the rest next iteration,
+                    # and the epoch after a Zeno completion).
+                    go = (jumping & new.at_start & ~new.done & ~completed & ~out.next.fire
+                          & out.next.finite & (new.t < new.t1))
                     new = eqx.tree_at(
                         lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), new,
                         (new.at_start & ~go, jnp.where(go, out.next.g_start, new.g_prev_slots),

@@ -61,6 +61,7 @@ from ._rules import (
     step_end,
     step_stops,
     stop_first,
+    zeno_completion,
 )
 from ._status import Status
 from ._zeno import ZenoOptions, detect_zeno
@@ -358,17 +359,13 @@ class Loop:
         stopped = _stop(st, (is_zeno, Status.ZENO))
         if not self.system.completions:
             return stopped
-        c = self.kern.completion_of_mode[st.mode]
-        has = c >= 0
-        c_safe = jnp.maximum(c, 0)
-        st_c, x_c, t_c, args_c = mask_inputs(is_zeno & has, (st, x_inf, t_inf, args))
-        y_after = self.kern.completion_reset(c_safe, t_c, x_c, args_c)
-        target = self.kern.completion_targets[c_safe]
-        index = self.kern.num_transitions + c_safe
-        done = self._record(st_c, index, t_c, x_c, y_after, target, jnp.array(False), jnp.array(False))
-        done = self._begin_epoch(done, t_c, y_after, target, jnp.array(0, jnp.int32))
+        comp = zeno_completion(self.kern, st.mode, is_zeno, t_inf, x_inf, args)
+        st_c = mask_inputs(comp.completes, st)
+        done = self._record(st_c, comp.index, comp.t, comp.x, comp.y_after, comp.target, jnp.array(False),
+                            jnp.array(False))
+        done = self._begin_epoch(done, comp.t, comp.y_after, comp.target, jnp.array(0, jnp.int32))
         done = _stop(done, (st.num_events >= self.max_epochs, Status.MAX_EPOCHS))
-        return _select(is_zeno & has, done, stopped)
+        return _select(comp.completes, done, stopped)
 
     # ----------------------------------------------------------------- start of an epoch
     def start_stage(self, st: LoopState) -> LoopState:

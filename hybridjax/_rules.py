@@ -18,7 +18,7 @@ functions and tests):
 - location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`; the guards
   reached at one instant, `simultaneous_set`, and the simultaneity rule,
   `resolve_simultaneous`), `event_point` (the implicit-function event time);
-- the jump: `blocks`, `jump_outcome`, `push_recent`;
+- the jump: `blocks`, `jump_outcome`, `push_recent`, `zeno_completion`;
 - saving: `saved_in_step`;
 - the precedence of statuses: `stop_first`.
 
@@ -52,7 +52,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._fast_rk import fold, unrolled_sum
-from ._kernels import Kernels
+from ._kernels import Kernels, mask_inputs
 from ._status import Status
 
 sg = lax.stop_gradient
@@ -106,6 +106,17 @@ class NonfiniteStep(NamedTuple):
     finite: jax.Array
     next_h: jax.Array
     stuck: jax.Array
+
+
+class ZenoCompletionStep(NamedTuple):
+    """The jump of a Zeno execution to its limit (`zeno_completion`)."""
+
+    completes: jax.Array  # Zeno detected and the mode has a completion
+    index: jax.Array  # the event's transition index, K + c for completion c
+    target: jax.Array  # the completion's target mode
+    t: jax.Array  # the accumulation time t_inf (gradients cut where it does not complete)
+    x: jax.Array  # the limit state x_inf (likewise)
+    y_after: jax.Array  # the completion's reset of it
 
 
 class JumpOutcome(NamedTuple):
@@ -622,6 +633,21 @@ def push_recent(window, value):
     """The window of recent event times (or states), oldest first, after an event: the oldest
     dropped, `value` appended (the Zeno test reads it, `detect_zeno`)."""
     return jnp.concatenate([window[1:], value[None].astype(window.dtype)])
+
+
+def zeno_completion(kern: Kernels, mode, is_zeno, t_inf, x_inf, args) -> ZenoCompletionStep:
+    """The completion of a Zeno execution: where Zeno is detected (`detect_zeno`) and `mode`
+    has a `ZenoCompletion` c, the execution jumps at the accumulation time t_inf from the limit
+    state x_inf through c's reset into c's target mode, recorded as the event of transition
+    index K + c (A. D. Ames, H. Zheng, R. D. Gregg, S. Sastry, "Is there life after Zeno?",
+    ACC 2006). Elsewhere it stops with `ZENO`."""
+    c = kern.completion_of_mode[mode]
+    completes = is_zeno & (c >= 0)
+    c = jnp.maximum(c, 0)
+    t_c, x_c, a_c = mask_inputs(completes, (t_inf, x_inf, args))
+    y_after = kern.completion_reset(c, t_c, x_c, a_c)
+    return ZenoCompletionStep(completes, kern.num_transitions + c, kern.completion_targets[c], t_c, x_c,
+                              y_after)
 
 
 # ---------------------------------------------------------------------------- saving

@@ -32,8 +32,6 @@ def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
                 "coefficients, rms norm and no dtmin, dtmax, step_ts or jump_ts")
     if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
         return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
-    if system.completions:
-        return "Zeno completions are not supported by the batched engine yet"
     return None
 
 
