@@ -84,6 +84,20 @@ def lines(root: pathlib.Path) -> dict:
     return dict(files=counts, total=sum(counts.values()))
 
 
+def summary(a, roots, runs) -> dict:
+    """Best of the completed rounds per version, and the ratio B / A."""
+    table = {}
+    for name in PROBLEMS:
+        for key in runs["A"][0][name]:
+            for what in ("run_s", "compile_s"):
+                best = {v: min(run[name][key][what] for run in runs[v]) for v in roots}
+                table[f"{name} | {key} | {what}"] = dict(A=best["A"], B=best["B"], ratio=best["B"] / best["A"])
+    return dict(
+        a=str(roots["A"]), b=str(roots["B"]), rounds=len(runs["B"]), repeat=a.repeat, n=a.n,
+        lines=dict(A=lines(roots["A"]), B=lines(roots["B"])), best=table, runs=runs,
+    )
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--a", required=True, help="source tree of version A (the reference)")
@@ -106,18 +120,10 @@ def main():
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=root)
             runs[v].append(json.loads(proc.stdout.strip().splitlines()[-1]))
             print(f"round {r + 1}/{a.rounds}, {v} done", file=sys.stderr, flush=True)
-    table = {}
-    for name in PROBLEMS:
-        for key in runs["A"][0][name]:
-            for what in ("run_s", "compile_s"):
-                best = {v: min(run[name][key][what] for run in runs[v]) for v in roots}
-                table[f"{name} | {key} | {what}"] = dict(A=best["A"], B=best["B"], ratio=best["B"] / best["A"])
-    result = dict(
-        a=str(roots["A"]), b=str(roots["B"]), rounds=a.rounds, repeat=a.repeat, n=a.n,
-        lines=dict(A=lines(roots["A"]), B=lines(roots["B"])), best=table, runs=runs,
-    )
-    pathlib.Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    pathlib.Path(a.out).write_text(json.dumps(result, indent=1))
+        result = summary(a, roots, runs)  # written after every round: a long run can be cut short
+        pathlib.Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+        pathlib.Path(a.out).write_text(json.dumps(result, indent=1))
+    table = result["best"]
     print(f"{'problem | entry point | measure':60s} {'A':>9s} {'B':>9s} {'B/A':>6s}")
     for k, v in table.items():
         print(f"{k:60s} {v['A']:9.4f} {v['B']:9.4f} {v['ratio']:6.3f}")
