@@ -126,7 +126,7 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine: Zeno completions, implicit solvers, PID coefficients,
+      Not on the batched engine: implicit solvers, PID coefficients,
       `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in

@@ -98,6 +98,7 @@ SHARED_RULES = (
     "saved_in_step",
     "stop_first",
     "detect_zeno",
+    "zeno_completion",
 )
 # The step and the step-size rule (`_fast_rk`): the per-execution engine calls them through
 # `UnrolledERK` and `FastIController`.

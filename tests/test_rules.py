@@ -89,44 +89,20 @@ def test_first_step_carries_the_proposal_only_when_asked():
 
 def test_epoch_start_of_the_ball_on_the_floor():
     # The guard h with flow (v, -g): L0 = h, L1 = v, L2 = -g.
-    def start(v):
-        return R.epoch_start(
-            BALL_KERN,
-            jnp.asarray(0),
-            jnp.asarray(0.0),
-            jnp.array([0.0, v]),
-            {"g": G, "e": 0.8},
-            jnp.asarray(0.0),
-            jnp.asarray(1.0),
-            carry=False,
-            rtol=1e-8,
-            atol=1e-8,
-            event_tol=1e-12,
-            eps=EPS,
-        )
+    def start(h, v, initial=1.0):
+        return R.epoch_start(BALL_KERN, jnp.asarray(0), jnp.asarray(0.0), jnp.array([h, v]), {"g": G, "e": 0.8},
+                             jnp.asarray(0.0), jnp.asarray(initial), carry=False, rtol=1e-8, atol=1e-8,
+                             event_tol=1e-12, eps=EPS)
 
-    falling = start(-1.0)
+    falling = start(0.0, -1.0)
     assert bool(falling.fire) and int(falling.k) == 0 and not bool(falling.inside)
     assert not bool(falling.simultaneous) and bool(falling.finite)
     np.testing.assert_array_equal(falling.F, [-1.0, -G])
-    leaving = start(0.98)
+    leaving = start(0.0, 0.98)
     # departing: disarmed, and the first step capped at v / g = 0.1 (half the flight 2 v / g)
     assert not bool(leaving.fire) and float(leaving.g_start[0]) == 0.0
     assert float(leaving.h) == pytest.approx(0.98 / G, rel=1e-15)
-    high = R.epoch_start(
-        BALL_KERN,
-        jnp.asarray(0),
-        jnp.asarray(0.0),
-        jnp.array([1.0, 0.0]),
-        {"g": G, "e": 0.8},
-        jnp.asarray(0.0),
-        jnp.asarray(0.25),
-        carry=False,
-        rtol=1e-8,
-        atol=1e-8,
-        event_tol=1e-12,
-        eps=EPS,
-    )
+    high = start(1.0, 0.0, initial=0.25)
     assert not bool(high.fire) and float(high.g_start[0]) == 1.0 and float(high.h) == 0.25
 
 
