@@ -317,16 +317,16 @@ _THETA_PAD = 16
 @functools.lru_cache(maxsize=64)
 def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str):
     m = len(thetas)
-    dt = jnp.dtype(dtype)
-    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dt)
+    dtype = jnp.dtype(dtype)
+    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dtype)
     th[:m] = thetas
-    eye = np.eye(2 + num_stages, dtype=dt)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
+    eye = np.eye(2 + num_stages, dtype=dtype)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
     basis = (th, eye[:, :1], eye[:, 1:2], eye[:, 2:, None])
     both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(*basis)
     out = []
-    for W in both:
-        W = np.asarray(W)[:m, :, 0]  # (thetas, basis)
-        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in W])
+    for weights in both:
+        weights = np.asarray(weights)[:m, :, 0]  # (thetas, basis)
+        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in weights])
     return out
 
 
@@ -347,9 +347,9 @@ def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype
     def slope(th, y0, y1, k):
         return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
 
-    dt = jnp.dtype(dtype)
+    dtype = jnp.dtype(dtype)
     B = 2 + num_stages
-    shapes = [jax.ShapeDtypeStruct(shape, dt)
+    shapes = [jax.ShapeDtypeStruct(shape, dtype)
               for shape in ((num_thetas,), (B, 1), (B, 1), (B, num_stages, 1))]
     return jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
                                             in_axes=(0, None, None, None))(th, *b)
@@ -369,9 +369,9 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     per degree up to the interpolant's own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
     value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
-    W = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
+    V = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
     T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
-    A = (2.0 / (degree + 1)) * T @ W
+    A = (2.0 / (degree + 1)) * T @ V
     A[0] /= 2
     # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
     # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
@@ -573,26 +573,27 @@ class BatchedLoop:
         """Lanes at the start of executions `ids` (clipped to the last one)."""
         t0, y0, mode0 = self.inputs
         t0, y0, mode0, t1 = (jnp.take(a, ids, axis=-1, mode="clip") for a in (t0, y0, mode0, self.t1))
-        N, n, W, dt = ids.shape[0], self.kern.n, self.kern.num_slots, self.dtype
+        N, n, S, dtype = ids.shape[0], self.kern.n, self.kern.num_slots, self.dtype
         return Lanes(
-            t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dt), f0=jnp.zeros((n, N), dt),
+            t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dtype), f0=jnp.zeros((n, N), dtype),
             at_start=jnp.ones((N,), bool), done=jnp.zeros((N,), bool),
             status=jnp.full((N,), Status.T1_REACHED._value, jnp.int32),
-            g_prev_slots=jnp.zeros((W, N), dt), num_events=jnp.zeros((N,), jnp.int32),
+            g_prev_slots=jnp.zeros((S, N), dtype), num_events=jnp.zeros((N,), jnp.int32),
             zero_run=jnp.zeros((N,), jnp.int32), num_steps=jnp.zeros((N,), jnp.int32),
-            num_rejected=jnp.zeros((N,), jnp.int32), zeno_time=jnp.full((N,), jnp.inf, dt),
-            zeno_state=jnp.full((n, N), jnp.inf, dt), recent_times=jnp.full((self.recent, N), jnp.inf, dt),
-            recent_states=jnp.full((3, n, N), jnp.inf, dt),
+            num_rejected=jnp.zeros((N,), jnp.int32), zeno_time=jnp.full((N,), jnp.inf, dtype),
+            zeno_state=jnp.full((n, N), jnp.inf, dtype),
+            recent_times=jnp.full((self.recent, N), jnp.inf, dtype),
+            recent_states=jnp.full((3, n, N), jnp.inf, dtype),
             save_ptr=jnp.searchsorted(self.save_sorted, t0, side="right").astype(jnp.int32),
             t1=t1, exec_id=ids.astype(jnp.int32), next_exec=jnp.asarray(next_exec, jnp.int32),
         )
 
     def init(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
         self.inputs = (t0, y0, mode0)
-        N, n, E, dt = self.num_exec, self.kern.n, self.max_epochs, self.dtype
+        N, n, E, dtype = self.num_exec, self.kern.n, self.max_epochs, self.dtype
         st = self.fresh(jnp.arange(self.N), self.N)
         at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
-        ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
+        ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dtype)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
         # One more row (execution N) and at least one column: events not kept are written
         # there, not dropped out of bounds (a loop buffer's reverse pass reads every written
@@ -605,12 +606,13 @@ class BatchedLoop:
             unrun = _stop(self.fresh(jnp.arange(N + 1), N), (jnp.ones((N + 1,), bool), Status.MAX_STEPS))
             finals = sg(Finals.of(unrun))
         rec = LaneRecord(
-            event_times=jnp.full((N + 1, E1), jnp.inf, dt), transitions=jnp.full((N + 1, E1), -1, jnp.int32),
+            event_times=jnp.full((N + 1, E1), jnp.inf, dtype),
+            transitions=jnp.full((N + 1, E1), -1, jnp.int32),
             epoch_modes=jnp.full((N + 1, E1 + 1), -1, jnp.int32).at[:N, 0].set(mode0),
             simultaneous=jnp.zeros((N + 1, E1), bool), grazing=jnp.zeros((N + 1, E1), bool),
             inside_guard=jnp.zeros((N + 1, E1), bool),
-            states_before=jnp.full((N + 1, E1, n), jnp.inf, dt),
-            states_after=jnp.full((N + 1, E1, n), jnp.inf, dt),
+            states_before=jnp.full((N + 1, E1, n), jnp.inf, dtype),
+            states_after=jnp.full((N + 1, E1, n), jnp.inf, dtype),
             ys=ys, saved_modes=saved_modes, finals=finals)
         return st, rec
 
@@ -968,11 +970,11 @@ class BatchedLoop:
 
         def window(carry):
             rec, ptr = carry
-            idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (W, N)
+            idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
             ok = took & (idx < S) & saved_in_step(tt, sg(t), t_end)
             dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
-            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, W, N)
+            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
             ys = rec.ys.at[lanes[None, :], rows].set(jnp.moveaxis(vals, 0, -1), mode="drop")
             modes = rec.saved_modes.at[lanes[None, :], rows].set(
