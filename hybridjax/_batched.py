@@ -45,8 +45,10 @@ import numpy as np
 from jax import lax
 
 from ._fast_rk import (
+    PIDState,
     explicit_rk_step,
-    i_controller,
+    has_history,
+    pid_controller,
     rk_error_estimate,
     scaled_error,
     weighted_sum,
@@ -100,6 +102,9 @@ class Lanes(eqx.Module):
     zeno_state: jax.Array  # (n, N)
     recent_times: jax.Array  # (R, N)
     recent_states: jax.Array  # (3, n, N)
+    inv_error: jax.Array  # (N,) the step-size rule's history (`PIDState`; unused by an I controller)
+    prev_inv_error: jax.Array
+    at_dtmin: jax.Array
     save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
     t1: jax.Array  # (N,): the end time of each lane's execution
     exec_id: jax.Array  # (N,) int32: the execution each lane runs (num_executions: none)
@@ -584,6 +589,8 @@ class BatchedLoop:
             zeno_state=jnp.full((n, N), jnp.inf, dtype),
             recent_times=jnp.full((self.recent, N), jnp.inf, dtype),
             recent_states=jnp.full((3, n, N), jnp.inf, dtype),
+            inv_error=jnp.ones((N,), dtype), prev_inv_error=jnp.ones((N,), dtype),
+            at_dtmin=jnp.zeros((N,), bool),
             save_ptr=jnp.searchsorted(self.save_sorted, t0, side="right").astype(jnp.int32),
             t1=t1, exec_id=ids.astype(jnp.int32), next_exec=jnp.asarray(next_exec, jnp.int32),
         )
@@ -742,6 +749,16 @@ class BatchedLoop:
                                h=start.h.astype(self.dtype))
         return LaneStart(start, y_after)
 
+    def restart_step_rule(self, st: Lanes, mask) -> Lanes:
+        """The lanes in `mask` with the step-size rule's history of a new epoch (diffrax's
+        `PIDController.init`: 1, 1, not at dtmin), as the per-execution engine restarts its
+        controller at each epoch."""
+        if not has_history(self.controller):
+            return st
+        return eqx.tree_at(lambda s: (s.inv_error, s.prev_inv_error, s.at_dtmin), st,
+                           (jnp.where(mask, 1.0, st.inv_error), jnp.where(mask, 1.0, st.prev_inv_error),
+                            st.at_dtmin & ~mask))
+
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
 
@@ -759,6 +776,7 @@ class BatchedLoop:
                 lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), st,
                 (st.at_start & ~go, jnp.where(go, start.g_start, st.g_prev_slots),
                  jnp.where(go, start.h, st.h), jnp.where(go, start.F, st.f0)))
+            st = self.restart_step_rule(st, go)
             st = _stop(st, (go & (st.t >= st.t1), Status.T1_REACHED))
             st = _stop(st, (fire & blocks(start.k, K), Status.BLOCKED))
             if K:
@@ -828,10 +846,10 @@ class BatchedLoop:
 
         # Read by many fusions below, each of which would recompute it from the stages.
         e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
-        # The I controller of `FastIController`, per lane (a step with a non-finite value is
-        # rejected and shrunk by `nonfinite_step`, whatever the factor).
-        keep, factor = i_controller(e, c._get_error_order(self.error_order), c.safety, c.factormin,
-                                    c.factormax)
+        # The step-size rule of `FastIController`, per lane (a step with a non-finite value is
+        # rejected and shrunk by `nonfinite_step`, whatever the rule proposes).
+        pid = PIDState(st.inv_error, st.prev_inv_error, st.at_dtmin)
+        keep, proposed, pid_new = pid_controller(e, pid, c._get_error_order(self.error_order), hh, c)
         keep = keep & finite_y1
         if num_watch:
             hs = sg(hh)
@@ -866,14 +884,16 @@ class BatchedLoop:
         else:
             finite_G = jnp.ones_like(keep)
         # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`).
-        finite, h_new, stuck = nonfinite_step(finite_y1, finite_G, hh * factor.astype(self.dtype), sg(hh),
-                                               sg(t), self.eps)
+        finite, h_new, stuck = nonfinite_step(finite_y1, finite_G, proposed, sg(hh), sg(t), self.eps)
         h_new = sg(h_new)
         keep = keep & finite
         counted = eqx.tree_at(
             lambda s: (s.h, s.num_steps, s.num_rejected), st,
             (jnp.where(stepping, h_new, st.h), st.num_steps + stepping.astype(jnp.int32),
              st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
+        if pid_new is not pid:  # a rule with history (`has_history`): kept where the step is finite
+            kept_rule = tuple(jnp.where(stepping & finite, a, b) for a, b in zip(pid_new, pid, strict=True))
+            counted = eqx.tree_at(lambda s: (s.inv_error, s.prev_inv_error, s.at_dtmin), counted, kept_rule)
         if num_watch:
             ok = keep & stepping
             det = _detect(st.g_prev_slots, G_e, D_e, times, some_step)
@@ -927,6 +947,7 @@ class BatchedLoop:
                         lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), new,
                         (new.at_start & ~go, jnp.where(go, out.next.g_start, new.g_prev_slots),
                          jnp.where(go, out.next.h, new.h), jnp.where(go, out.next.F, new.f0)))
+                    new = self.restart_step_rule(new, go)
                 new_all = _scatter_lanes(new_all, b0, new, idx)
                 # An event lane's step ends at its event, t_star (elsewhere t_star is t_next).
                 if self.save_ts.shape[0]:

@@ -25,12 +25,12 @@ uses both where they give diffrax's steps to rounding (e^(-1/q) by `inverse_root
 few ulps of `pow`).
 
 The step (`explicit_rk_step`, `rk_error_estimate`) and the step-size rule (`scaled_error`,
-`i_controller`) are written once, for one execution, over the leading (component) axis of the
+`pid_controller`) are written once, for one execution, over the leading (component) axis of the
 state: the per-execution engine calls them through `UnrolledERK` and `FastIController`, the
 batched engine on its lanes-last (n, lanes) arrays, where they broadcast over the lanes.
 """
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -96,17 +96,25 @@ def can_unroll(solver) -> bool:
 
 def can_use_fast_controller(controller) -> bool:
     """Whether `FastIController` reproduces `controller`'s steps (a default-coefficient PID)."""
-    if type(controller) is not diffrax.PIDController:
+    if not can_batch_controller(controller):
+        return False
+    c = controller
+    return bool(c.pcoeff == 0 and c.icoeff == 1 and c.dcoeff == 0 and c.dtmin is None and c.dtmax is None)
+
+
+def can_batch_controller(controller) -> bool:
+    """Whether `pid_controller` reproduces `controller`'s steps: a `PIDController` with the rms
+    norm, Python-number coefficients and bounds, and no step_ts / jump_ts."""
+    if type(controller) is not diffrax.PIDController or controller.norm is not optx.rms_norm:
         return False
     c = controller
     try:
-        plain = (c.pcoeff == 0 and c.icoeff == 1 and c.dcoeff == 0 and c.dtmin is None
-                 and c.dtmax is None and getattr(c, "step_ts", None) is None
-                 and getattr(c, "jump_ts", None) is None)
-        plain = bool(plain)
+        return bool(getattr(c, "step_ts", None) is None and getattr(c, "jump_ts", None) is None
+                    and all(isinstance(v, (int, float)) for v in (c.pcoeff, c.icoeff, c.dcoeff, c.safety,
+                                                                 c.factormin, c.factormax))
+                    and all(v is None or isinstance(v, (int, float)) for v in (c.dtmin, c.dtmax)))
     except jax.errors.ConcretizationTypeError:  # traced coefficients: the general controller
         return False
-    return plain and c.norm is optx.rms_norm
 
 
 def explicit_rk_step(tab, field, t0, y0, h, f0):
@@ -149,16 +157,62 @@ def scaled_error(y0, y1, y_err, rtol, atol):
     return jnp.sqrt(fold(jnp.add, jnp.square(y_err / scale)) / y0.shape[0])
 
 
-def i_controller(e, order, safety, factormin, factormax):
-    """The I controller's step-size rule: keep the step when e < 1, and scale it by
+class PIDState(NamedTuple):
+    """The step-size history of diffrax's `PIDController`: 1/e of the last accepted step and of
+    the one before, and whether the step is at `dtmin`."""
 
-        factor = clip(safety e^(-1/q), [1 if kept else factormin, factormax if kept else safety]),
+    inv_error: jax.Array
+    prev_inv_error: jax.Array
+    at_dtmin: jax.Array
 
-    q the solver's error order (`inverse_root`). Returns `(keep, factor)`, no gradients."""
+
+def has_history(c) -> bool:
+    """Whether the rule reads `PIDState` (P or D terms, or dtmin); the I controller does not."""
+    return not (c.pcoeff == 0 and c.dcoeff == 0 and c.dtmin is None)
+
+
+def pid_controller(e, state: PIDState, order, h, c):
+    """diffrax's `PIDController` rule for the next step size from the scaled error e of a step of
+    size h (`scaled_error`), with the controller `c`'s coefficients, q the error order:
+
+        keep = e < 1 (or at dtmin),   h_next = h clip(safety (1/e)^b1 r1^b2 r2^b3, bounds),
+        b1 = (i + p + d) / q,  b2 = -(p + 2 d) / q,  b3 = d / q,
+
+    r1, r2 the 1/e of the last two accepted steps (`PIDState`), bounds [1, factormax] for a kept
+    step and [factormin, safety] otherwise (p = d = 0: the I controller); then
+    h_next <= dtmax and h_next >= dtmin. Elementwise: lanes broadcast. Returns
+    `(keep, h_next, state)`, the state `state` itself where the rule reads none (`has_history`).
+    """
+    i_sum = c.icoeff + c.pcoeff + c.dcoeff
+    b2, b3 = -(c.pcoeff + 2 * c.dcoeff) / order, c.dcoeff / order
+    history = 1.0
+    if b2 != 0:
+        history = history * state.inv_error**b2
+    if b3 != 0:
+        history = history * state.prev_inv_error**b3
     keep = e < 1
-    lo = jnp.where(keep, 1.0, factormin)
-    hi = jnp.where(keep, factormax, safety)
-    return keep, lax.stop_gradient(jnp.clip(safety * inverse_root(e, order), lo, hi))
+    if c.dtmin is not None:
+        keep = keep | state.at_dtmin
+    # the I term, e^(-1/q') with q' = q / (i + p + d), by `inverse_root`
+    term = inverse_root(e, order / i_sum) if i_sum != 0 else jnp.ones_like(e)
+    lo = jnp.where(keep, 1.0, c.factormin)
+    hi = jnp.where(keep, c.factormax, c.safety)
+    factor = lax.stop_gradient(jnp.clip(c.safety * term * history, lo, hi))
+    h_next = h * factor.astype(jnp.result_type(h))
+    if c.dtmax is not None:
+        h_next = jnp.minimum(h_next, c.dtmax)
+    at_dtmin = state.at_dtmin
+    if c.dtmin is not None:
+        h_next = jnp.where(state.at_dtmin & (factor == 1), c.dtmin, h_next)
+        at_dtmin = h_next <= c.dtmin
+        h_next = jnp.maximum(h_next, c.dtmin)
+    if not has_history(c):
+        return keep, h_next, state
+    inv = lax.stop_gradient(1 / e)
+    inv = jnp.where((inv == 0) | jnp.isinf(inv), 1.0, inv)
+    new = PIDState(jnp.where(keep, inv, state.inv_error),
+                   jnp.where(keep, state.inv_error, state.prev_inv_error), at_dtmin)
+    return keep, h_next, new
 
 
 class UnrolledERK:
@@ -228,12 +282,14 @@ def inverse_root(e, q):
 
 
 class FastIController:
-    """diffrax's `PIDController(pcoeff=0, icoeff=1, dcoeff=0)` step rule, without its general
-    machinery; `init` is diffrax's (Hairer's initial step), delegated."""
+    """diffrax's `PIDController` step rule (`pid_controller`; for the default coefficients, an
+    I controller) without its general machinery; `init` is diffrax's (Hairer's initial step),
+    delegated."""
 
     def __init__(self, controller: diffrax.PIDController):
-        if not can_use_fast_controller(controller):
-            raise TypeError("FastIController: only a default-coefficient PIDController.")
+        if not can_batch_controller(controller):
+            raise TypeError("FastIController: only a PIDController with the rms norm, Python-number "
+                            "coefficients and no step_ts / jump_ts.")
         self.controller = controller
 
     def __getattr__(self, name):  # rtol, atol, ...
@@ -248,9 +304,9 @@ class FastIController:
     def adapt_step_size(self, t0, t1, y0, y1, args, y_err, error_order, controller_state) -> Any:
         c = self.controller
         e = scaled_error(y0, y1, y_err, c.rtol, c.atol)
-        keep, factor = i_controller(e, c._get_error_order(error_order), c.safety, c.factormin, c.factormax)
-        dt = (t1 - t0) * factor.astype(y0.dtype)
+        state = PIDState(*controller_state)
+        keep, h_next, state = pid_controller(e, state, c._get_error_order(error_order), t1 - t0, c)
         next_t0 = jnp.where(keep, t1, t0)
-        next_t1 = next_t0 + dt
-        return keep, next_t0, next_t1, jnp.array(False), controller_state, diffrax.RESULTS.successful
+        next_t1 = next_t0 + h_next
+        return keep, next_t0, next_t1, jnp.array(False), tuple(state), diffrax.RESULTS.successful
 

@@ -12,7 +12,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from ._batched import BatchedLoop, as_status
 from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
+from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
 from ._system import HybridSystem
@@ -27,9 +27,9 @@ def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
     if not can_unroll(solver):
         return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
                 "Tsit5, Dopri5, Dopri8")
-    if not can_use_fast_controller(controller):
-        return (f"stepsize_controller {controller!r} is not a PIDController with default "
-                "coefficients, rms norm and no dtmin, dtmax, step_ts or jump_ts")
+    if not can_batch_controller(controller):
+        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm, "
+                "Python-number coefficients and no step_ts or jump_ts")
     if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
         return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
     return None
@@ -111,8 +111,9 @@ def simulate_batch(
     batch), every execution advances one solver step per iteration with its own time, step
     size, mode and events, and the work only some executions need in an iteration (the
     epoch-start test, root location, resets) is done on those executions alone, gathered into
-    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a default
-    `PIDController`; `benchmarks/work_precision.py` measures it against `vmap(simulate)`.
+    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a `PIDController`
+    (any coefficients, `dtmin`, `dtmax`); `benchmarks/work_precision.py` measures it against
+    `vmap(simulate)`.
 
     **Arguments** (as `simulate`, except):
 
@@ -126,8 +127,8 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine: implicit solvers, PID coefficients,
-      `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
+      Not on the batched engine: implicit solvers, `step_ts`/`jump_ts`,
+      `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work

@@ -102,7 +102,7 @@ SHARED_RULES = (
 )
 # The step and the step-size rule (`_fast_rk`): the per-execution engine calls them through
 # `UnrolledERK` and `FastIController`.
-SHARED_STEP = ("explicit_rk_step", "rk_error_estimate", "scaled_error", "i_controller")
+SHARED_STEP = ("explicit_rk_step", "rk_error_estimate", "scaled_error", "pid_controller")
 
 
 def test_both_engines_call_the_same_rule_functions():

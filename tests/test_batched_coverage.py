@@ -1,11 +1,14 @@
 """`simulate_batch` runs its own engine (`engine="batched"` refuses to fall back to
-`jax.vmap(simulate)`) for what the per-execution engine does: here, Zeno completions."""
+`jax.vmap(simulate)`) for what the per-execution engine does: Zeno completions, and every
+option of diffrax's `PIDController` but step_ts / jump_ts."""
 
 import math
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 from hybridjax import examples
@@ -56,3 +59,24 @@ def test_zeno_completion_gradient_in_the_batched_engine():
     g = jax.grad(total)(h0)
     want = (1 + E) / (1 - E) / jnp.sqrt(2 * 9.8 * h0)
     np.testing.assert_allclose(g, want, rtol=1e-6)
+
+
+# Van der Pol with relay: the step size varies over orders of magnitude, so the controller's
+# history, bounds and rejections all act.
+@pytest.mark.parametrize("controller", [
+    diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.3, icoeff=0.4, dtmax=0.05),
+    diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dcoeff=0.1, dtmin=1e-2,
+                          force_dtmin=True),
+], ids=["PI, dtmax", "PID, dtmin"])
+def test_pid_options_in_the_batched_engine(controller):
+    vdp = examples.van_der_pol_relay()
+    x0 = jnp.array([[-1.0, 0.5], [0.2, -1.0], [-1.5, 1.5]])
+    got, want = (hj.simulate_batch(vdp, x0, 0, 0.0, 10.0, 5.0, stepsize_controller=controller, engine=engine)
+                 for engine in ("batched", "vmap"))
+    # The same rule as diffrax's own controller (in `jax.vmap(simulate)`): the same steps.
+    np.testing.assert_array_equal(got.num_steps, want.num_steps)
+    np.testing.assert_array_equal(got.num_rejected, want.num_rejected)
+    assert int(np.min(got.num_rejected)) > 0
+    np.testing.assert_array_equal(got.num_events, want.num_events)
+    np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-11)
+    np.testing.assert_allclose(got.final_state, want.final_state, rtol=1e-9, atol=1e-11)

@@ -15,7 +15,14 @@ import pytest
 
 from hybridjax import _rules as R
 from hybridjax import examples
-from hybridjax._fast_rk import UnrolledERK, explicit_rk_step, i_controller, rk_error_estimate, scaled_error
+from hybridjax._fast_rk import (
+    PIDState,
+    UnrolledERK,
+    explicit_rk_step,
+    pid_controller,
+    rk_error_estimate,
+    scaled_error,
+)
 from hybridjax._kernels import GuardJets, Kernels
 from hybridjax._status import Status
 
@@ -319,19 +326,35 @@ def test_explicit_rk_step_of_heun_on_exponential_growth():
     np.testing.assert_allclose(jnp.abs(rk_error_estimate(tab, ks, y0)), h * h * 2.0 / 2, rtol=1e-13)
 
 
-def test_scaled_error_and_i_controller():
+def test_scaled_error_and_the_step_size_rule():
     # err / (atol + rtol max|y|) = (3e-6 / 1e-6, 4e-6 / 2e-6) = (3, 2): e = sqrt((9 + 4) / 2)
     e = scaled_error(jnp.array([0.0, 1.0]), jnp.array([0.0, -1.0]), jnp.array([3e-6, 4e-6]), 1e-6, 1e-6)
     assert float(e) == pytest.approx(math.sqrt(6.5), rel=1e-14)
     # a NaN in y1 reads y0 in the scale; lanes last: one e per column
-    e = scaled_error(
-        jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6
-    )
+    e = scaled_error(jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6)
     np.testing.assert_allclose(e, [2.0, 2.0], rtol=1e-14)
-    # e = 1/32, q = 5: 0.9 * 2 = 1.8 (kept); e = 32: 0.9 / 2 = 0.45 (rejected, in [0.2, 0.9])
-    keep, factor = i_controller(jnp.array([1 / 32, 32.0, 1e-30, 1e30]), 5, 0.9, 0.2, 10.0)
+    # The I controller (safety 0.9, factors in [0.2, 10]), q = 5: e = 1/32 gives 0.9 * 2 = 1.8
+    # (kept); e = 32 gives 0.9 / 2 = 0.45 (rejected, in [0.2, 0.9]); the bounds clip the others.
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6)
+    one = jnp.ones(4)
+    state = PIDState(one, one, jnp.zeros(4, bool))
+    keep, h_next, same = pid_controller(jnp.array([1 / 32, 32.0, 1e-30, 1e30]), state, 5, 0.1 * one, c)
     np.testing.assert_array_equal(keep, [True, False, True, False])
-    np.testing.assert_allclose(factor, [1.8, 0.45, 10.0, 0.2], rtol=1e-14)
+    np.testing.assert_allclose(h_next, 0.1 * np.array([1.8, 0.45, 10.0, 0.2]), rtol=1e-14)
+    assert same is state  # no history to keep
+    # PI (p = 0.2, i = 0.5), q = 5, e = 1/32 after an accepted step with 1/e = 4:
+    # 0.9 * 32^(0.7 / 5) * 4^(-0.2 / 5) = 0.9 * 2^0.62; with h = 0.1 and dtmax = 0.12: 0.12
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5)
+    state = PIDState(jnp.asarray(4.0), jnp.asarray(1.0), jnp.asarray(False))
+    keep, h_next, new = pid_controller(jnp.asarray(1 / 32), state, 5, jnp.asarray(0.1), c)
+    assert bool(keep) and float(h_next) == pytest.approx(0.1 * 0.9 * 2**0.62, rel=1e-13)
+    assert float(new.inv_error) == 32.0 and float(new.prev_inv_error) == 4.0
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dtmax=0.12, dtmin=0.2)
+    _, h_next, new = pid_controller(jnp.asarray(1 / 32), state, 5, jnp.asarray(0.1), c)
+    assert float(h_next) == 0.2 and bool(new.at_dtmin)  # dtmax, then dtmin over it
+    # rejected (e = 32): the history moves back one step
+    _, _, new = pid_controller(jnp.asarray(32.0), state, 5, jnp.asarray(0.1), c)
+    assert float(new.inv_error) == 4.0 and float(new.prev_inv_error) == 1.0
 
 
 def test_resolve_simultaneous_first_listed_fires():
