@@ -29,7 +29,10 @@ ENGINE_FILES = ("_loop.py", "_batched.py", "_events.py", "_rules.py", "_fast_rk.
 PROBLEMS = ("ball", "vdp_relay", "thermostat")
 
 
-def one(n: int, repeat: int) -> dict:
+ENTRIES = ("simulate", "vmap(simulate)", "simulate_batch", "grad simulate", "grad simulate_batch")
+
+
+def one(n: int, repeat: int, entries) -> dict:
     """The measurements of the hybridjax found first on sys.path (run in a child process)."""
     import diffrax
     import jax
@@ -65,6 +68,8 @@ def one(n: int, repeat: int) -> dict:
         }
         res = {}
         for key, (fn, arg) in fns.items():
+            if key not in entries:
+                continue
             t = time.perf_counter()
             compiled = fn.trace(arg).lower().compile()
             compile_s = time.perf_counter() - t
@@ -105,18 +110,20 @@ def main():
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--n", type=int, default=100)
+    ap.add_argument("--entries", default=",".join(ENTRIES), help="comma-separated, of " + ", ".join(ENTRIES))
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ab.json"))
     a = ap.parse_args()
     if a.one:
-        print(json.dumps(one(a.n, a.repeat)))
+        print(json.dumps(one(a.n, a.repeat, a.entries.split(","))))
         return
     roots = {"A": pathlib.Path(a.a).resolve(), "B": pathlib.Path(a.b).resolve()}
     runs: dict = {"A": [], "B": []}
     for r in range(a.rounds):
         for v, root in roots.items():
             env = dict(os.environ, PYTHONPATH=str(root))
-            cmd = [sys.executable, __file__, "--a", a.a, "--one", "--n", str(a.n), "--repeat", str(a.repeat)]
+            cmd = [sys.executable, __file__, "--a", a.a, "--one", "--n", str(a.n), "--repeat", str(a.repeat),
+                   "--entries", a.entries]
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=root)
             runs[v].append(json.loads(proc.stdout.strip().splitlines()[-1]))
             print(f"round {r + 1}/{a.rounds}, {v} done", file=sys.stderr, flush=True)
