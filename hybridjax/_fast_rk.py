@@ -21,8 +21,7 @@ carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
     factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),
 
 q the solver's error order (its order + 1 for an ODE, as diffrax counts it). `engine="auto"`
-uses both where they give diffrax's steps to rounding (e^(-1/q) by `inverse_root`, within a
-few ulps of `pow`).
+uses both where they give diffrax's steps exactly.
 
 The step (`explicit_rk_step`, `rk_error_estimate`) and the step-size rule (`scaled_error`,
 `pid_controller`) are written once, for one execution, over the leading (component) axis of the
@@ -171,7 +170,12 @@ def has_history(c) -> bool:
     return not (c.pcoeff == 0 and c.dcoeff == 0 and c.dtmin is None)
 
 
-def pid_controller(e, state: PIDState, order, h, c):
+def pow_root(e, q):
+    """e^(-1/q) as diffrax computes it, `(1 / e) ** (1 / q)`."""
+    return (1 / e) ** (1 / q)
+
+
+def pid_controller(e, state: PIDState, order, h, c, root=None):
     """diffrax's `PIDController` rule for the next step size from the scaled error e of a step of
     size h (`scaled_error`), with the controller `c`'s coefficients, q the error order:
 
@@ -180,8 +184,11 @@ def pid_controller(e, state: PIDState, order, h, c):
 
     r1, r2 the 1/e of the last two accepted steps (`PIDState`), bounds [1, factormax] for a kept
     step and [factormin, safety] otherwise (p = d = 0: the I controller); then
-    h_next <= dtmax and h_next >= dtmin. Elementwise: lanes broadcast. Returns
-    `(keep, h_next, state)`, the state `state` itself where the rule reads none (`has_history`).
+    h_next <= dtmax and h_next >= dtmin. Elementwise: lanes broadcast. `root(e, q)` computes
+    e^(-1/q): `inverse_root` (elementwise arithmetic, which XLA:CPU vectorises) in the batched
+    engine (the default), `pow_root` (diffrax's own `pow`, so that the steps are diffrax's to the last bit) in
+    the per-execution one; the two agree to a few ulps. Returns `(keep, h_next, state)`, the
+    state `state` itself where the rule reads none (`has_history`).
     """
     i_sum = c.icoeff + c.pcoeff + c.dcoeff
     b2, b3 = -(c.pcoeff + 2 * c.dcoeff) / order, c.dcoeff / order
@@ -193,8 +200,9 @@ def pid_controller(e, state: PIDState, order, h, c):
     keep = e < 1
     if c.dtmin is not None:
         keep = keep | state.at_dtmin
-    # the I term, e^(-1/q') with q' = q / (i + p + d), by `inverse_root`
-    term = inverse_root(e, order / i_sum) if i_sum != 0 else jnp.ones_like(e)
+    # the I term, e^(-1/q') with q' = q / (i + p + d)
+    root = inverse_root if root is None else root
+    term = root(e, order / i_sum) if i_sum != 0 else jnp.ones_like(e)
     lo = jnp.where(keep, 1.0, c.factormin)
     hi = jnp.where(keep, c.factormax, c.safety)
     factor = lax.stop_gradient(jnp.clip(c.safety * term * history, lo, hi))
@@ -305,7 +313,7 @@ class FastIController:
         c = self.controller
         e = scaled_error(y0, y1, y_err, c.rtol, c.atol)
         state = PIDState(*controller_state)
-        keep, h_next, state = pid_controller(e, state, c._get_error_order(error_order), t1 - t0, c)
+        keep, h_next, state = pid_controller(e, state, c._get_error_order(error_order), t1 - t0, c, pow_root)
         next_t0 = jnp.where(keep, t1, t0)
         next_t1 = next_t0 + h_next
         return keep, next_t0, next_t1, jnp.array(False), tuple(state), diffrax.RESULTS.successful
