@@ -96,10 +96,18 @@ def summary(a, roots, runs) -> dict:
         for key in runs["A"][0][name]:
             for what in ("run_s", "compile_s"):
                 best = {v: min(run[name][key][what] for run in runs[v]) for v in roots}
-                table[f"{name} | {key} | {what}"] = dict(A=best["A"], B=best["B"], ratio=best["B"] / best["A"])
+                table[f"{name} | {key} | {what}"] = dict(
+                    A=best["A"], B=best["B"], ratio=best["B"] / best["A"]
+                )
     return dict(
-        a=str(roots["A"]), b=str(roots["B"]), rounds=len(runs["B"]), repeat=a.repeat, n=a.n,
-        lines=dict(A=lines(roots["A"]), B=lines(roots["B"])), best=table, runs=runs,
+        a=str(roots["A"]),
+        b=str(roots["B"]),
+        rounds=len(runs["B"]),
+        repeat=a.repeat,
+        n=a.n,
+        lines=dict(A=lines(roots["A"]), B=lines(roots["B"])),
+        best=table,
+        runs=runs,
     )
 
 
@@ -122,8 +130,19 @@ def main():
     for r in range(a.rounds):
         for v, root in roots.items():
             env = dict(os.environ, PYTHONPATH=str(root))
-            cmd = [sys.executable, __file__, "--a", a.a, "--one", "--n", str(a.n), "--repeat", str(a.repeat),
-                   "--entries", a.entries]
+            cmd = [
+                sys.executable,
+                __file__,
+                "--a",
+                a.a,
+                "--one",
+                "--n",
+                str(a.n),
+                "--repeat",
+                str(a.repeat),
+                "--entries",
+                a.entries,
+            ]
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=root)
             runs[v].append(json.loads(proc.stdout.strip().splitlines()[-1]))
             print(f"round {r + 1}/{a.rounds}, {v} done", file=sys.stderr, flush=True)

@@ -646,8 +646,9 @@ def zeno_completion(kern: Kernels, mode, is_zeno, t_inf, x_inf, args) -> ZenoCom
     c = jnp.maximum(c, 0)
     t_c, x_c, a_c = mask_inputs(completes, (t_inf, x_inf, args))
     y_after = kern.completion_reset(c, t_c, x_c, a_c)
-    return ZenoCompletionStep(completes, kern.num_transitions + c, kern.completion_targets[c], t_c, x_c,
-                              y_after)
+    return ZenoCompletionStep(
+        completes, kern.num_transitions + c, kern.completion_targets[c], t_c, x_c, y_after
+    )
 
 
 # ---------------------------------------------------------------------------- saving

@@ -16,8 +16,11 @@ from hybridjax import examples
 from helpers import BALL, TIGHT
 
 REST = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
-COMPLETED = hj.HybridSystem([BALL.modes[0], REST], BALL.transitions,
-                            completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])])
+COMPLETED = hj.HybridSystem(
+    [BALL.modes[0], REST],
+    BALL.transitions,
+    completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])],
+)
 X0 = jnp.array([[1.0, 0.0], [0.5, 0.0], [2.0, -1.0]])
 E = jnp.array([1 / math.sqrt(2), 0.5, 0.6])
 ARGS = {"g": jnp.full(3, 9.8), "e": E}
@@ -52,8 +55,17 @@ def test_zeno_completion_gradient_in_the_batched_engine():
     # d t_inf / d h0 = (1 + e) / (1 - e) / sqrt(2 g h0), for a ball dropped from rest
     def total(h0):
         x0 = jnp.stack([h0, jnp.zeros(3)], 1)
-        return hj.simulate_batch(COMPLETED, x0, "flight", 0.0, 4.0, ARGS, engine="batched",
-                                 stepsize_controller=TIGHT, args_batched=True).zeno_time.sum()
+        return hj.simulate_batch(
+            COMPLETED,
+            x0,
+            "flight",
+            0.0,
+            4.0,
+            ARGS,
+            engine="batched",
+            stepsize_controller=TIGHT,
+            args_batched=True,
+        ).zeno_time.sum()
 
     h0 = jnp.array([1.0, 0.5, 2.0])
     g = jax.grad(total)(h0)
@@ -63,16 +75,23 @@ def test_zeno_completion_gradient_in_the_batched_engine():
 
 # Van der Pol with relay: the step size varies over orders of magnitude, so the controller's
 # history, bounds and rejections all act.
-@pytest.mark.parametrize("controller", [
-    diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.3, icoeff=0.4, dtmax=0.05),
-    diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dcoeff=0.1, dtmin=1e-2,
-                          force_dtmin=True),
-], ids=["PI, dtmax", "PID, dtmin"])
+@pytest.mark.parametrize(
+    "controller",
+    [
+        diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.3, icoeff=0.4, dtmax=0.05),
+        diffrax.PIDController(
+            rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dcoeff=0.1, dtmin=1e-2, force_dtmin=True
+        ),
+    ],
+    ids=["PI, dtmax", "PID, dtmin"],
+)
 def test_pid_options_in_the_batched_engine(controller):
     vdp = examples.van_der_pol_relay()
     x0 = jnp.array([[-1.0, 0.5], [0.2, -1.0], [-1.5, 1.5]])
-    got, want = (hj.simulate_batch(vdp, x0, 0, 0.0, 10.0, 5.0, stepsize_controller=controller, engine=engine)
-                 for engine in ("batched", "vmap"))
+    got, want = (
+        hj.simulate_batch(vdp, x0, 0, 0.0, 10.0, 5.0, stepsize_controller=controller, engine=engine)
+        for engine in ("batched", "vmap")
+    )
     # The same rule as diffrax's own controller (in `jax.vmap(simulate)`): the same steps.
     np.testing.assert_array_equal(got.num_steps, want.num_steps)
     np.testing.assert_array_equal(got.num_rejected, want.num_rejected)

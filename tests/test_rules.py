@@ -97,9 +97,20 @@ def test_first_step_carries_the_proposal_only_when_asked():
 def test_epoch_start_of_the_ball_on_the_floor():
     # The guard h with flow (v, -g): L0 = h, L1 = v, L2 = -g.
     def start(h, v, initial=1.0):
-        return R.epoch_start(BALL_KERN, jnp.asarray(0), jnp.asarray(0.0), jnp.array([h, v]), {"g": G, "e": 0.8},
-                             jnp.asarray(0.0), jnp.asarray(initial), carry=False, rtol=1e-8, atol=1e-8,
-                             event_tol=1e-12, eps=EPS)
+        return R.epoch_start(
+            BALL_KERN,
+            jnp.asarray(0),
+            jnp.asarray(0.0),
+            jnp.array([h, v]),
+            {"g": G, "e": 0.8},
+            jnp.asarray(0.0),
+            jnp.asarray(initial),
+            carry=False,
+            rtol=1e-8,
+            atol=1e-8,
+            event_tol=1e-12,
+            eps=EPS,
+        )
 
     falling = start(0.0, -1.0)
     assert bool(falling.fire) and int(falling.k) == 0 and not bool(falling.inside)
@@ -331,7 +342,9 @@ def test_scaled_error_and_the_step_size_rule():
     e = scaled_error(jnp.array([0.0, 1.0]), jnp.array([0.0, -1.0]), jnp.array([3e-6, 4e-6]), 1e-6, 1e-6)
     assert float(e) == pytest.approx(math.sqrt(6.5), rel=1e-14)
     # a NaN in y1 reads y0 in the scale; lanes last: one e per column
-    e = scaled_error(jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6)
+    e = scaled_error(
+        jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6
+    )
     np.testing.assert_allclose(e, [2.0, 2.0], rtol=1e-14)
     # The I controller (safety 0.9, factors in [0.2, 10]), q = 5: e = 1/32 gives 0.9 * 2 = 1.8
     # (kept); e = 32 gives 0.9 / 2 = 0.45 (rejected, in [0.2, 0.9]); the bounds clip the others.

@@ -34,8 +34,16 @@ def test_options_object_and_keywords_detect_the_same_zeno_time():
 
 
 def test_zeno_options_in_simulate_batch_and_off():
-    sols = hj.simulate_batch(BALL, jnp.stack([X0, X0]), "flight", 0.0, 5.0, ARGS, stepsize_controller=TIGHT,
-                             zeno=hj.ZenoOptions(window=4, ratio_tol=0.01, max_ratio=0.9))
+    sols = hj.simulate_batch(
+        BALL,
+        jnp.stack([X0, X0]),
+        "flight",
+        0.0,
+        5.0,
+        ARGS,
+        stepsize_controller=TIGHT,
+        zeno=hj.ZenoOptions(window=4, ratio_tol=0.01, max_ratio=0.9),
+    )
     np.testing.assert_allclose(sols.zeno_time, examples.zeno_time(1.0, 9.8, E), atol=1e-6)
     assert _run(zeno=False, max_epochs=8).status == hj.Status.MAX_EPOCHS
 
