@@ -46,3 +46,4 @@ from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
+from ._zeno import ZenoOptions as ZenoOptions

@@ -29,7 +29,6 @@ concrete value of an array argument (a 0-d NumPy array `mode0` of `simulate_batc
 call is made as a plain call.
 """
 
-import contextvars
 import functools
 import inspect
 from collections.abc import Callable
@@ -47,28 +46,11 @@ from ._transforms import (
     eager_at_top,
     naming_the_forward_mode_fix,
 )
-
-_TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", default=None)
-
-
-class _Ticket:
-    used: bool = False
-
+from ._validation import _TIME_SPAN_CHECKED, _Ticket
 
 # The errors of code that needs a concrete value where the compiled call gives it a tracer.
 _NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
                    jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)
-
-
-def take_time_span_check() -> bool:
-    """Whether t1 >= t0 was checked on concrete values at the call being traced, so that its
-    check needs no traced copy (and no host callback). True once per compiled call, for the
-    first check made in its trace: the call's own."""
-    ticket = _TIME_SPAN_CHECKED.get()
-    if ticket is None or ticket.used:
-        return False
-    ticket.used = True
-    return True
 
 
 class _StaticScalar:

@@ -84,7 +84,8 @@ class HybridLQRProblem(eqx.Module):
                  upper=None, max_events=2, substeps=8, stepsize_controller=None):
         dims = {m.dim for m in system.modes}
         if len(dims) != 1:
-            raise ValueError(f"HybridLQRProblem: every mode needs the same state dimension, got {sorted(dims)}.")
+            raise ValueError("HybridLQRProblem: every mode needs the same state dimension, got "
+                             f"{sorted(dims)}.")
         n = dims.pop()
         ts = jnp.asarray(ts, float)
         reference = jnp.asarray(reference, float)

@@ -25,6 +25,7 @@ from ._transforms import (
     warn_if_forward_mode_beneath,
 )
 from ._validation import as_state_array, check_time_span
+from ._zeno import ZenoOptions, zeno_options
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:
@@ -234,7 +235,7 @@ def simulate(
     event_tol: float | None = None,
     interior_points: int = 4,
     max_zero_epochs: int = 16,
-    zeno: bool = True,
+    zeno: bool | ZenoOptions = True,
     zeno_window: int = 3,
     zeno_ratio_tol: float = 0.05,
     zeno_max_ratio: float = 0.99,
@@ -302,7 +303,8 @@ def simulate(
       local minimum of a guard that may reach zero is searched for on the dense output, so
       near-grazing crossings (down to rounding level) are found too.
     - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
-    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection. After each
+    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection (`zeno` may
+      also be a `ZenoOptions`, which holds the other three; `zeno=False` switches it off). After each
       event, if the last `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch
       lengths lie in (0, zeno_max_ratio] and agree with the latest to `zeno_ratio_tol`
       (relative), and the extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is
@@ -358,8 +360,7 @@ def simulate(
         interior_points=int(interior_points),
         event_tol=event_tol,
         max_zero_epochs=int(max_zero_epochs),
-        zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
-                  max_ratio=float(zeno_max_ratio)) if zeno else None,
+        zeno=zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio),
         loop_kind=kind,
         checkpoints=checkpoints,
         dtype=dtype,

@@ -4,13 +4,30 @@ Nothing here calls a user function on real data: `jax.eval_shape` traces it with
 arrays, so the checks are cheap and have no side effects.
 """
 
+import contextvars
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._eager import take_time_span_check
+# Set by `_eager.compiled_when_eager` around the trace of a call whose time span it checked.
+_TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", default=None)
+
+
+class _Ticket:
+    used: bool = False
+
+
+def take_time_span_check() -> bool:
+    """Whether t1 >= t0 was checked on concrete values at the call being traced, so that its
+    check needs no traced copy (and no host callback). True once per compiled call, for the
+    first check made in its trace: the call's own."""
+    ticket = _TIME_SPAN_CHECKED.get()
+    if ticket is None or ticket.used:
+        return False
+    ticket.used = True
+    return True
 
 
 class DefinitionError(ValueError):
