@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._events import start_decision
 from ._kernels import Kernels
+from ._rules import start_decision
 from ._search import box_samples, search
 from ._system import HybridSystem
 from ._validation import domain_sizes

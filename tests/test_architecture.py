@@ -18,7 +18,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("definition and validation", ("_validation", "_system")),
     ("kernels", ("_kernels",)),
     ("step", ("_fast_rk",)),
-    ("rules", ("_rules", "_events", "_zeno")),
+    ("rules", ("_rules", "_zeno")),
     ("engines", ("_loop", "_batched")),
     ("solution", ("_solution", "_dense")),
     ("solve", ("_eager", "_simulate", "_simulate_batch")),
