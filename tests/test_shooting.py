@@ -6,17 +6,21 @@ known in closed form, derived here:
 - a ball whose position at t1 is fixed, required to bounce exactly twice before t1 (the optimum
   on the boundary of the admissible speeds), and the same without the requirement, where the
   iterates' bounce count changes;
-- a rimless wheel whose push-off gain minimises the spectral radius of its return map's Jacobian.
+- a rimless wheel whose push-off gain minimises the spectral radius of its return map's Jacobian;
+- a pytree of an open-loop thrust table (a `diffrax.LinearInterpolation` in `args`) and a feedback
+  gain, recovered from the impact and a post-impact height computed by scipy.
 """
 
 import math
 
+import diffrax
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import optax
 import optimistix as optx
 import pytest
+from scipy.integrate import solve_ivp
 
 import hybridjax as hj
 
@@ -276,3 +280,60 @@ def test_gait_push_off_gain_minimising_the_spectral_radius():
     orbit = hj.periodic_orbit(WHEEL, 0, guess, {"k": jnp.asarray(-c)}, max_epochs=2, t_max=20.0)
     np.testing.assert_allclose(orbit.state, [GAMMA - ALPHA, c * W_REF], atol=1e-9)
     np.testing.assert_allclose(np.max(np.abs(orbit.multipliers_ad)), 1.0, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- control table and feedback gain
+
+H0, T_CTRL, T_SAVE = 2.0, 1.5, 1.2
+KNOT_TS = jnp.array([0.0, T_CTRL])
+
+
+def _thrust_ball():
+    """h'' = -g + u(t) - k h' with u linear between the knots (an open-loop table in `args`) and a
+    feedback gain k (a policy's weight in `args`); impacts on h = 0 with restitution E."""
+    def flow(t, x, p):
+        u = diffrax.LinearInterpolation(KNOT_TS, p["knots"]).evaluate(t)
+        return jnp.stack([x[1], -G + u - p["gain"] * x[1]])
+
+    bounce = hj.Transition("flight", "flight", guard=lambda t, x, p: x[0],
+                           reset=lambda t, x, p: jnp.stack([x[0], -E * x[1]]))
+    return hj.HybridSystem([hj.Mode("flight", flow, dim=2)], [bounce])
+
+
+def _scipy_targets(knots, gain):
+    """First impact time, speed before it, and height at T_SAVE after it: scipy's solve_ivp with
+    a terminal event, restarted from the reset state."""
+    def f(t, x):
+        u = knots[0] + (knots[1] - knots[0]) * t / T_CTRL
+        return [x[1], -G + u - gain * x[1]]
+
+    def impact(t, x):
+        return x[0]
+
+    impact.terminal, impact.direction = True, -1
+    first = solve_ivp(f, (0.0, T_CTRL), [H0, 0.0], events=impact, rtol=1e-12, atol=1e-12)
+    t_1, v_1 = first.t_events[0][0], first.y_events[0][0][1]
+    after = solve_ivp(f, (t_1, T_SAVE), [0.0, -E * v_1], rtol=1e-12, atol=1e-12)
+    return t_1, v_1, after.y[0, -1]
+
+
+def test_a_control_table_and_a_feedback_gain_are_recovered_as_one_pytree():
+    # The parameters (knots (3, 6), gain 0.5) are unknown to the optimiser: it sees only the
+    # impact time, the impact speed and a height after the bounce, computed by scipy from them;
+    # three conditions, three unknowns (locally unique), so the optimum has cost 0 there.
+    t_1, v_1, h_after = _scipy_targets(np.array([3.0, 6.0]), 0.5)
+
+    def cost(p, sol):
+        return ((sol.event_times[0] - t_1) ** 2 + ((sol.states_before[0, 1] - v_1) / 5) ** 2
+                + (sol.ys[0, 0] - h_after) ** 2)
+
+    problem = hj.Shooting(_thrust_ball(), cost, x0=jnp.array([H0, 0.0]), mode0="flight", t1=T_CTRL,
+                          args=lambda p: p, saveat=jnp.array([T_SAVE]), max_epochs=2,
+                          stepsize_controller=TIGHT)
+    result = hj.shoot(problem, {"knots": jnp.array([2.0, 5.0]), "gain": jnp.asarray(0.3)},
+                      optax.lbfgs(), steps=40)
+    # scipy's and hybridjax's executions agree to ~1e-10, which bounds how well the targets pin
+    # the parameters down.
+    np.testing.assert_allclose(result.params["knots"], [3.0, 6.0], atol=1e-7)
+    np.testing.assert_allclose(result.params["gain"], 0.5, atol=1e-7)
+    assert float(result.costs[-1]) < 1e-16
