@@ -89,6 +89,18 @@ def lines(root: pathlib.Path) -> dict:
     return dict(files=counts, total=sum(counts.values()))
 
 
+def _tree_name(root: pathlib.Path) -> str:
+    """The tree's git commit (with "+changes" when it has uncommitted ones), or its folder name."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "hybridjax"], cwd=root, capture_output=True,
+                               text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return root.name
+    return head + (" +changes" if dirty else "")
+
+
 def summary(a, roots, runs) -> dict:
     """Best of the completed rounds per version, and the ratio B / A."""
     table = {}
@@ -100,8 +112,8 @@ def summary(a, roots, runs) -> dict:
                     A=best["A"], B=best["B"], ratio=best["B"] / best["A"]
                 )
     return dict(
-        a=str(roots["A"]),
-        b=str(roots["B"]),
+        a=_tree_name(roots["A"]),
+        b=_tree_name(roots["B"]),
         rounds=len(runs["B"]),
         repeat=a.repeat,
         n=a.n,
