@@ -91,8 +91,12 @@ def constraint_violation(
     `equalities(t, x, args)` and `inequalities(t, x, args)` return 1-D arrays (or scalars),
     wanted `== 0` and `>= 0`; either may be `None`.
     """
-    r = _residuals(_joint(equalities, inequalities), None, t, x, args)
-    v = jnp.sum(r**2)
+    return _violation(_joint(equalities, inequalities), None, t, x, args)
+
+
+def _violation(constraints, t_bounds, t, x, args):
+    """The squared norm of `_residuals`; infinite where a value is not finite."""
+    v = jnp.sum(_residuals(constraints, t_bounds, t, x, args) ** 2)
     return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
 
@@ -180,9 +184,7 @@ def search(
     k = min(int(num_starts), xs.shape[0])
 
     def violation(t, x):
-        r = _residuals(constraints, t_bounds, t, x, args)
-        v = jnp.sum(r**2)
-        return jnp.where(jnp.isfinite(v), v, jnp.inf)
+        return _violation(constraints, t_bounds, t, x, args)
 
     scores = jax.vmap(violation)(ts, xs)
     _, best = jax.lax.top_k(-scores, k)
