@@ -13,6 +13,10 @@ from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
 from ._presets import PRESET_NAMES as PRESET_NAMES
 from ._presets import accuracy_preset as accuracy_preset
+from ._scene import Constraint as Constraint
+from ._scene import ContactSystem as ContactSystem
+from ._scene import Scene as Scene
+from ._scene import contact_system as contact_system
 from ._search import Witness as Witness
 from ._search import box_samples as box_samples
 from ._search import constraint_violation as constraint_violation
