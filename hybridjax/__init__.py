@@ -15,6 +15,7 @@ from ._presets import PRESET_NAMES as PRESET_NAMES
 from ._presets import accuracy_preset as accuracy_preset
 from ._scene import Constraint as Constraint
 from ._scene import ContactSystem as ContactSystem
+from ._scene import Relabel as Relabel
 from ._scene import Scene as Scene
 from ._scene import contact_system as contact_system
 from ._search import Witness as Witness

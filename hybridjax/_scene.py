@@ -40,6 +40,7 @@ every pruned transition still leads, with its guard, to a terminal mode named
 execution that reaches a contact set that was not built stops and names it.
 """
 
+import functools
 import itertools
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -92,6 +93,10 @@ class Constraint(eqx.Module):
       a number $e \in [0, 1]$, or `restitution(args) -> e`. With $e > 0$ the contact separates
       after its impact (Newton's law $\dot a^+ = -e \dot a^-$) and is not added to the contact
       set.
+    - `tangent`: optional `tangent(t, q, args) -> scalar`, the contact point's coordinate along
+      the surface, for a contact that sticks while it is held (a foot that does not slip,
+      unlimited friction): its rate $\dot b$ is held at 0 with the gap (the impact stops it
+      too), its force $\lambda_t$ is free in sign, and it is released with the gap.
 
     !!! Example
 
@@ -104,6 +109,7 @@ class Constraint(eqx.Module):
     fn: Callable = eqx.field(static=True)
     kind: str = eqx.field(static=True, default=UNILATERAL)
     restitution: float | Callable | None = eqx.field(static=True, default=None)
+    tangent: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name or "+" in self.name:
@@ -114,6 +120,8 @@ class Constraint(eqx.Module):
             raise ValueError(
                 f"Constraint '{self.name}': `kind` must be 'unilateral' or 'bilateral', got {self.kind!r}."
             )
+        if self.tangent is not None and not callable(self.tangent):
+            raise TypeError(f"Constraint '{self.name}': `tangent` must be callable or None.")
         e = self.restitution
         if e is not None and self.kind == BILATERAL:
             raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
@@ -226,8 +234,55 @@ class Scene(eqx.Module):
         if (s := shape(self.forces, t, q, q)) != (n,):
             raise ValueError(f"Scene: `forces` returns shape {s}, expected {(n,)}.")
         for c in self.constraints:
-            if (s := shape(c.fn, t, q)) not in ((), (1,)):
-                raise ValueError(f"Constraint '{c.name}' returns shape {s}, expected a scalar.")
+            for role, fn in (("fn", c.fn), ("tangent", c.tangent)):
+                if fn is not None and (s := shape(fn, t, q)) not in ((), (1,)):
+                    raise ValueError(f"Constraint '{c.name}': `{role}` returns shape {s}, expected a scalar.")
+
+
+class Relabel(eqx.Module):
+    r"""Identify contact set `source` with contact set `target` through a change of coordinates.
+
+    A body with symmetric parts (the spokes of a wheel, the legs of a walker) reaches sets that
+    are the same physical situation with the parts renamed. A transition into `source` goes to
+    `target` instead, with $q' = $ `q_map(t, q, args)` and $\dot q' = \partial_q$`q_map`$\,\dot q$
+    applied after its reset; `source` is never built. `q_map` must carry the constraints of
+    `source` onto those of `target` (a rotation by the spoke angle, a shift of the origin to the
+    new stance foot), so that the periodic gait of a walker is a periodic orbit of the system.
+
+    !!! Example
+
+        ```python
+        # spoke 1 becomes spoke 0: rotate back by 2 alpha, put the new foot at x = 0
+        hj.Relabel(("spoke1",), ("spoke0",), q_map=lambda t, q, args: ...)
+        ```
+    """
+
+    source: tuple[str, ...] = eqx.field(static=True, converter=tuple)
+    target: tuple[str, ...] = eqx.field(static=True, converter=tuple)
+    q_map: Callable = eqx.field(static=True)
+
+    def __check_init__(self):
+        if not callable(self.q_map):
+            raise TypeError(f"Relabel {self.source} -> {self.target}: `q_map` must be callable.")
+
+    def state_map(self, n: int) -> Callable:
+        """(t, x, args) -> (q_map(q), D q_map dq)."""
+
+        def m(t, x, args):
+            q2, dq2 = jax.jvp(lambda q_: jnp.asarray(self.q_map(t, q_, args), x.dtype), (x[:n],), (x[n:],))
+            return jnp.concatenate([q2, dq2])
+
+        return m
+
+
+def _then(reset: Callable, relabel_map: Callable | None) -> Callable:
+    if relabel_map is None:
+        return reset
+    return lambda t, x, args: relabel_map(t, reset(t, x, args), args)
+
+
+def _identity(t, x, args):
+    return x
 
 
 # ----------------------------------------------------------------------------- mechanics
@@ -308,6 +363,22 @@ def set_name(scene: Scene, contact_set) -> str:
     return "+".join(scene.constraints[i].name for i in sorted(contact_set))
 
 
+def rows(scene: Scene, members) -> tuple[tuple, tuple]:
+    """The rows of the constraints `members` (indices, in order): their gaps, then the
+    tangential coordinates of those that stick. Returns (functions, owners): row r belongs to
+    constraint owners[r]; row i < len(members) is the gap of members[i]."""
+    sticky = [k for k in members if scene.constraints[k].tangent is not None]
+    fns = tuple(scene.constraints[k].fn for k in members) + tuple(
+        scene.constraints[k].tangent for k in sticky
+    )
+    return fns, tuple(members) + tuple(sticky)
+
+
+def _row_mask(owners, members_mask, dtype):
+    """A mask over rows from one over constraints (indexed by constraint)."""
+    return jnp.asarray(members_mask, dtype)[np.asarray(owners, dtype=int)]
+
+
 def _releases(held_unilateral):
     """Release candidates R of the held unilateral constraints: none, then one, then two..."""
     return [
@@ -332,15 +403,17 @@ class _Impact(eqx.Module):
         return self.source + (self.k,)
 
     def fns(self):
-        return tuple(self.scene.constraints[i].fn for i in self.order)
+        return rows(self.scene, self.order)[0]
 
     def _e(self, args, dtype):
         e_k = self.scene.constraints[self.k].coefficient(args)
-        return jnp.zeros(len(self.order), dtype).at[-1].set(jnp.asarray(e_k, dtype))
+        num_rows = len(self.fns())
+        return jnp.zeros(num_rows, dtype).at[len(self.order) - 1].set(jnp.asarray(e_k, dtype))
 
     def held(self, c, dtype):
+        """The held rows of candidate `c` (the released constraints' rows are 0)."""
         release = self.candidates[c]
-        return jnp.asarray([0.0 if i in release else 1.0 for i in self.order], dtype)
+        return jnp.asarray([0.0 if i in release else 1.0 for i in rows(self.scene, self.order)[1]], dtype)
 
     def outcome(self, c, t, x, args):
         n = self.scene.dim
@@ -362,9 +435,11 @@ class _Impact(eqx.Module):
         the held constraints independent."""
         _, P, rates = self.outcome(c, t, x, args)
         held = self.held(c, x.dtype)
+        m = len(self.order)  # the gaps' rows: impulses and separation are judged on these
         scale = 1.0 + jnp.max(jnp.abs(P))
-        ok_P = jnp.all(jnp.where(held > 0, P >= -1e-9 * scale, True))
-        ok_v = jnp.all(jnp.where(held > 0, True, rates >= -1e-9 * (1.0 + jnp.max(jnp.abs(rates)))))
+        ok_P = jnp.all(jnp.where(held[:m] > 0, P[:m] >= -1e-9 * scale, True))
+        tol_v = 1e-9 * (1.0 + jnp.max(jnp.abs(rates)))
+        ok_v = jnp.all(jnp.where(held[:m] > 0, True, rates[:m] >= -tol_v))
         ok_i = independence(self.scene, self.fns(), held, t, x[: self.scene.dim], args) > _INDEPENDENT
         return ok_P & ok_v & (ok_i | self.least_norm)
 
@@ -383,7 +458,8 @@ class _Impact(eqx.Module):
 
         def g(t, x, args):
             a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
-            sel = self.select(t, x, args)
+            # Which outcome holds is a discrete choice: no derivative flows through it.
+            sel = self.select(*jax.lax.stop_gradient((t, x, args)))
             hit = jnp.any(jnp.stack([sel == c for c in chosen])) if chosen else False
             return jnp.where(hit, a, jnp.abs(a) + 1.0)
 
@@ -416,10 +492,10 @@ class _ModeFunctions(eqx.Module):
 
     def _fns_mask(self, dtype):
         if self.form == "mask":
-            fns = tuple(c.fn for c in self.scene.constraints)
-            mask = jnp.asarray([1.0 if i in self.held else 0.0 for i in range(len(fns))], dtype)
-            return fns, mask
-        fns = tuple(self.scene.constraints[i].fn for i in self.held)
+            K = len(self.scene.constraints)
+            fns, owners = rows(self.scene, range(K))
+            return fns, _row_mask(owners, [1.0 if i in self.held else 0.0 for i in range(K)], dtype)
+        fns, _ = rows(self.scene, self.held)
         return fns, jnp.ones(len(fns), dtype)
 
     def solve(self, t, x, args):
@@ -457,24 +533,31 @@ class _Query(eqx.Module):
     hit: Array  # one-hot impacting constraint (or zeros)
     impact_held: Array  # C less the released constraints (zeros for a lift-off)
     released: Array  # the released constraints
-    target: Array  # the new contact set (its independence is required)
     flowing: Array  # scalar 1: lambda_A >= 0 required (impacts)
 
 
-def _query_functions(scene: Scene, margin: float, least_norm: bool, require_independent: bool):
-    fns = tuple(c.fn for c in scene.constraints)
-    n = scene.dim
+@functools.cache
+def _query_functions(scene: Scene, margin: float, least_norm: bool):
+    """The equalities and inequalities of every query (cached: later builds of one scene, with
+    other `args`, reuse the compiled search)."""
+    K, n = len(scene.constraints), scene.dim
+    fns, owners = rows(scene, range(K))
     unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
 
     def parts(t, x, p):
         args, Q = p
         q, dq = x[:n], x[n:]
+        held_rows = _row_mask(owners, Q.held, x.dtype)
         a, _, adot, _ = constraint_kinematics(fns, t, q, dq, args)
-        _, lam = constrained_acceleration(scene, fns, Q.held, t, q, dq, args, least_norm)
+        _, lam = constrained_acceleration(scene, fns, held_rows, t, q, dq, args, least_norm)
         e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
-        _, P, rates = impact(scene, fns, Q.impact_held, e, t, q, dq, args, least_norm)
+        e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
+        impact_rows = _row_mask(owners, Q.impact_held, x.dtype)
+        _, P, rates = impact(scene, fns, impact_rows, e, t, q, dq, args, least_norm)
+        a, adot_gap, lam, P, rates = a[:K], adot[:K], lam[:K], P[:K], rates[:K]
         uni = jnp.asarray(unilateral, x.dtype)
-        eq = jnp.concatenate([Q.held * a, Q.held * adot, Q.hit * a])
+        eq = jnp.concatenate([Q.held * a, held_rows * adot, Q.hit * a])
+        adot = adot_gap
         one = jnp.ones_like(a)
         ineq = [
             jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, a, one),
@@ -484,23 +567,17 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool, require_inde
             jnp.where(Q.impact_held * uni > 0, P, one),
             jnp.where(Q.released > 0, rates, one),
         ]
-        if require_independent:
-            ineq.append(
-                jnp.reshape(independence(scene, fns, Q.target, t, q, args) - 1e3 * _INDEPENDENT, (1,))
-            )
         return eq, jnp.concatenate(ineq)
 
     return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
 
 
-def _run_queries(
-    scene, queries, args_batch, samples, margin, least_norm, require_independent, tol, num_starts
-):
+def _run_queries(scene, queries, args_batch, samples, margin, least_norm, tol, num_starts):
     """find_point for every (query, args value): Witness with leading axes (Q, V)."""
     ts, xs = samples
-    eq, ineq = _query_functions(scene, margin, least_norm, require_independent)
+    eq, ineq = _query_functions(scene, margin, least_norm)
     Q = len(queries)
-    padded = 1 << max(Q - 1, 0).bit_length()  # powers of two: few distinct compiled batch sizes
+    padded = max(8, 1 << max(Q - 1, 0).bit_length())  # powers of two: few distinct compiled sizes
     queries = list(queries) + [queries[0]] * (padded - Q)
     stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries)
     out = _search(eq, ineq, ts, xs, stacked, args_batch, tol, num_starts)
@@ -549,22 +626,32 @@ class ContactSystem(HybridSystem):
         self.form = form
 
     @property
+    def force_names(self) -> tuple[str, ...]:
+        """The columns of `contact_forces`: the constraints' names, then `"<name>.t"` for the
+        tangential force of each sticking contact."""
+        _, owners = rows(self.scene, range(len(self.scene.constraints)))
+        K = len(self.scene.constraints)
+        return tuple(self.scene.constraints[k].name + (".t" if r >= K else "") for r, k in enumerate(owners))
+
+    @property
     def built_sets(self) -> tuple[frozenset, ...]:
         """The contact sets built as modes (sets of constraint names)."""
         return tuple(frozenset(s) for s in self.contact_sets if s is not None)
 
     def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
-        r"""The contact forces $\lambda$ (one column per constraint, in the scene's order; 0 for a
-        constraint not held) at the saved states `sol.ts`, `sol.ys` of a solution of this system
+        r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
+        per sticking contact's tangential force, as `force_names`; 0 for a constraint not held) at
+        the saved states `sol.ts`, `sol.ys` of a solution of this system
         (NaN at save times the execution did not reach). `args` defaults to `sol.args`; for a
         batch it must be the one `args` of every execution."""
         args = sol.args if args is None else args
         scene, K = self.scene, len(self.scene.constraints)
-        fns = tuple(c.fn for c in scene.constraints)
+        fns, owners = rows(scene, range(K))
         table = np.zeros((self.num_modes, K))
         for m, s in enumerate(self.contact_sets):
             for name in s or ():
                 table[m, scene.index(name)] = 1.0
+        table = table[:, np.asarray(owners, dtype=int)]
         least_norm = any(self.least_norm_modes)
         n = scene.dim
 
@@ -617,6 +704,7 @@ def contact_system(
     redundant: str = "error",
     form: str = "branch",
     max_modes: int = 64,
+    relabels: Sequence[Relabel] = (),
 ) -> ContactSystem:
     r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
 
@@ -645,6 +733,8 @@ def contact_system(
     - `form`: `"branch"` (each mode solves with its held constraints only) or `"mask"` (every
       mode solves with all constraints, those not held masked out).
     - `max_modes`: a build that would exceed this many modes stops with an error.
+    - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
+      set goes to its `target` set, the state relabelled).
 
     !!! Example
 
@@ -680,109 +770,100 @@ def contact_system(
     def onehot(idx):
         return jnp.asarray([1.0 if i in idx else 0.0 for i in range(K)], dtype)
 
-    def query(A, lift=(), hit=(), impact_held=(), released=(), target=None, flowing=0.0):
+    def query(A, lift=(), hit=(), impact_held=(), released=(), flowing=0.0):
         return _Query(
             onehot(A),
             onehot(lift),
             onehot(hit),
             onehot(impact_held),
             onehot(released),
-            onehot(A if target is None else target),
             jnp.asarray(flowing, dtype),
         )
 
-    def search(qs, require_independent=True):
-        return _run_queries(
-            scene, qs, args_batch, samples, margin, least_norm, require_independent, tol, num_starts
-        )
+    def search(qs):
+        return _run_queries(scene, qs, args_batch, samples, margin, least_norm, tol, num_starts)
 
-    def dependent_error(S, where):
-        names = [scene.constraints[i].name for i in sorted(S)]
-        raise ValueError(
-            f"contact_system: the contact set {set_name(scene, S)} is reachable ({where}) but its "
-            f"constraints {names} are dependent (redundant contacts) at every state found; pass "
-            "redundant='least_norm' for least-norm contact forces, or remove a constraint."
-        )
-
-    # Initial sets: a consistent state (held gaps and rates 0, the others open, independent).
+    # Initial sets: a consistent state (held gaps and rates 0, the others open), where the held
+    # constraints are independent (or `redundant="least_norm"`).
     initial_sets = list(dict.fromkeys(_as_set(scene, s) for s in initial))
     if not initial_sets:
         raise ValueError("contact_system: give at least one initial contact set.")
     w = search([query(A) for A in initial_sets])
     built: dict[frozenset, bool] = {}  # set -> least-norm
     report: list[str] = []
-    for A, found in zip(initial_sets, w.found.any(-1), strict=True):
-        if not found:
-            w2 = search([query(A)], require_independent=False)
-            if not w2.found.any():
-                raise ValueError(
-                    f"contact_system: the initial contact set {set_name(scene, A)} has no consistent "
-                    f"state in the scene's ranges (held gaps and rates 0, the other contacts open)."
-                )
-            if not least_norm:
-                dependent_error(A, "an initial set")
-            built[A] = True
-        else:
-            built[A] = False
+    for i, A in enumerate(initial_sets):
+        if not w.found[i].any():
+            raise ValueError(
+                f"contact_system: the initial contact set {set_name(scene, A)} has no consistent state "
+                "in the scene's ranges (held gaps and rates 0, the other contacts open; least violation "
+                f"{np.nanmin(w.violation[i]):.2g}, infinite where the held constraints are dependent)."
+            )
+        v = int(np.argmax(w.found[i]))
+        fns, owners = rows(scene, range(K))
+        held_rows = _row_mask(owners, onehot(A), dtype)
+        ratio = independence(scene, fns, held_rows, w.t[i, v], jnp.asarray(w.x[i, v, :n]), values[v])
+        if ratio <= _INDEPENDENT and not least_norm:
+            names = [scene.constraints[j].name for j in sorted(A)]
+            raise ValueError(
+                f"contact_system: the initial contact set {set_name(scene, A)} has dependent constraints "
+                f"{names} (redundant contacts); pass redundant='least_norm' for least-norm contact "
+                "forces, or remove one of them."
+            )
+        built[A] = least_norm
+
+    relabel_of = {}
+    for r in relabels:
+        if not isinstance(r, Relabel):
+            raise TypeError(f"contact_system: relabels must be hybridjax.Relabel, got {type(r).__name__}.")
+        relabel_of[_as_set(scene, r.source)] = (_as_set(scene, r.target), r.state_map(n))
+
+    def canonical(T):
+        return relabel_of.get(T, (T, None))
 
     impacts: dict[tuple, _Impact] = {}
-    outcomes: dict[tuple, tuple] = {}  # (A, kind, j) -> per candidate: (target, found, text)
+    outcomes: dict[tuple, list] = {}  # (A, kind, j) -> per candidate: (c, target, found, text)
     frontier = list(built)
     while frontier:
         qs, keys = [], []
         for A in frontier:
             for k in sorted(unilateral - A):
-                imp = _Impact(
-                    scene,
-                    tuple(sorted(A)),
-                    k,
-                    tuple(tuple(sorted(r)) for r in _releases(A & unilateral)),
-                    built[A] or least_norm,
-                )
+                releases = tuple(tuple(sorted(r)) for r in _releases(A & unilateral))
+                imp = _Impact(scene, tuple(sorted(A)), k, releases, least_norm)
                 impacts[(A, k)] = imp
                 for c, R in enumerate(imp.candidates):
                     held = (A | {k}) - set(R)
-                    qs.append(query(A, hit={k}, impact_held=held, released=set(R), target=held, flowing=1.0))
+                    qs.append(query(A, hit={k}, impact_held=held, released=set(R), flowing=1.0))
                     keys.append((A, "impact", k, c, imp.target(c)))
             for j in sorted(A & unilateral):
-                qs.append(query(A, lift={j}, target=A - {j}))
+                qs.append(query(A, lift={j}))
                 keys.append((A, "lift-off", j, 0, A - {j}))
         frontier = []
         if not qs:
             break
         w = search(qs)
-        retry = [i for i in range(len(qs)) if not w.found[i].any()]
-        w_dep = search([qs[i] for i in retry], require_independent=False) if retry else None
         for i, (A, kind, j, c, T) in enumerate(keys):
             found_v = w.found[i]
-            dep = False
-            if not found_v.any() and w_dep is not None:
-                r = retry.index(i)
-                if w_dep.found[r].any():
-                    if not least_norm:
-                        dependent_error(
-                            T, f"by {kind} of {scene.constraints[j].name} from {set_name(scene, A)}"
-                        )
-                    found_v, dep = w_dep.found[r], True
-                    w_x, w_t = w_dep.x[r], w_dep.t[r]
             if found_v.any():
-                if not dep:
-                    w_x, w_t = w.x[i], w.t[i]
                 v = int(np.argmax(found_v))
                 where = "" if found_v.all() else f", only for args_values {list(np.flatnonzero(found_v))}"
-                text = f"witness t={w_t[v]:.3g}, q={_fmt(w_x[v, :n])}, dq={_fmt(w_x[v, n:])}{where}"
+                text = f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
+                T = canonical(T)[0]
                 if T not in built:
                     if len(built) >= max_modes:
                         raise ValueError(
                             f"contact_system: more than max_modes={max_modes} contact sets reached."
                         )
-                    built[T] = dep or least_norm
+                    built[T] = least_norm
                     frontier.append(T)
                 outcomes.setdefault((A, kind, j), []).append((c, T, True, text))
             else:
+                least = float(
+                    np.nanmin(np.where(np.isfinite(w.violation[i]), w.violation[i], np.nan), initial=np.inf)
+                )
                 why = (
-                    "no state of the source set found in the guard: "
-                    f"least violation {w.violation[i].min():.2g}"
+                    f"no state of the source set found in the guard (least violation {least:.2g})"
+                    if np.isfinite(least)
+                    else "the contact equations are singular (dependent constraints) at every state tried"
                 )
                 outcomes.setdefault((A, kind, j), []).append((c, T, False, why))
 
@@ -807,16 +888,22 @@ def contact_system(
                 chosen = tuple(c for c, _, ok, _ in items if ok)
                 for c, T, ok, text in items:
                     if ok:
+                        tgt, relabel_map = canonical(imp.target(c))
+                        via = (
+                            ""
+                            if relabel_map is None
+                            else f" (relabelled from {set_name(scene, imp.target(c))})"
+                        )
                         transitions.append(
                             Transition(
                                 src,
-                                set_name(scene, T),
+                                set_name(scene, tgt),
                                 guard=imp.guard((c,)),
-                                reset=imp.reset(c),
-                                name=f"impact {cname}: {src} -> {set_name(scene, T)}",
+                                reset=_then(imp.reset(c), relabel_map),
+                                name=f"impact {cname}: {src} -> {set_name(scene, tgt)}",
                             )
                         )
-                        achievable.append((src, set_name(scene, T), kind, cname, text))
+                        achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
                     else:
                         released = [scene.constraints[i].name for i in imp.candidates[c]]
                         rel = f" releasing {'+'.join(released)}" if released else ""
@@ -836,15 +923,18 @@ def contact_system(
             else:
                 c, T, ok, text = items[0]
                 if ok:
+                    tgt, relabel_map = canonical(T)
+                    via = "" if relabel_map is None else f" (relabelled from {set_name(scene, T)})"
                     transitions.append(
                         Transition(
                             src,
-                            set_name(scene, T),
+                            set_name(scene, tgt),
                             guard=mode_fns[A].force(j),
-                            name=f"lift-off {cname}: {src} -> {set_name(scene, T)}",
+                            reset=_then(_identity, relabel_map),
+                            name=f"lift-off {cname}: {src} -> {set_name(scene, tgt)}",
                         )
                     )
-                    achievable.append((src, set_name(scene, T), kind, cname, text))
+                    achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
                 else:
                     term = UNBUILT + set_name(scene, T)
                     terminals[term] = None
@@ -860,6 +950,7 @@ def contact_system(
         modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
 
     candidates = {T for items in outcomes.values() for _, T, _, _ in items} | set(built)
+    candidates -= set(relabel_of) - set(built)
     unreached = sorted(candidates - set(built), key=lambda s: (len(s), sorted(s)))
     report.append(
         f"contact sets built: {len(built)} of 2^{len(unilateral)} = {2 ** len(unilateral)} "
