@@ -827,7 +827,13 @@ def contact_system(
         qs, keys = [], []
         for A in frontier:
             for k in sorted(unilateral - A):
-                releases = tuple(tuple(sorted(r)) for r in _releases(A & unilateral))
+                # A candidate with more rows than coordinates is dependent wherever it is: it
+                # can hold only with least-norm impulses.
+                releases = tuple(
+                    tuple(sorted(r))
+                    for r in _releases(A & unilateral)
+                    if least_norm or len(rows(scene, sorted((A | {k}) - r))[0]) <= n
+                )
                 imp = _Impact(scene, tuple(sorted(A)), k, releases, least_norm)
                 impacts[(A, k)] = imp
                 for c, R in enumerate(imp.candidates):

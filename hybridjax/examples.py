@@ -9,6 +9,8 @@
   Zeno truncation.
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
 - `integrate_and_fire`: a leaky integrate-and-fire neuron, a long spike train in closed form.
+- Scenes for `contact_system`: `wedge_particle` (the chapter's practice problem 1), `ball_scene`,
+  `ceiling_scene`, `polygon_particle` (a point inside K walls), `rimless_wheel_scene`.
 
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
@@ -18,6 +20,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ._scene import Constraint, Relabel, Scene
 from ._system import HybridSystem, Mode, Transition
 
 # ----------------------------------------------------------------------------- ball
@@ -40,8 +43,9 @@ def bouncing_ball() -> HybridSystem:
     return HybridSystem([flight], [bounce])
 
 
-def bouncing_ball_closed_form(h0: float, v0: float, g: float, e: float, t1: float,
-                              max_events: int = 10_000) -> dict:
+def bouncing_ball_closed_form(
+    h0: float, v0: float, g: float, e: float, t1: float, max_events: int = 10_000
+) -> dict:
     """Impact times, post-impact velocities and the state at t1 of the bouncing ball.
 
     First impact at t_1 = (v0 + sqrt(v0^2 + 2 g h0)) / g with speed w_1 = sqrt(v0^2 + 2 g h0);
@@ -59,8 +63,7 @@ def bouncing_ball_closed_form(h0: float, v0: float, g: float, e: float, t1: floa
         t = t + 2 * w / g
     dt = t1 - t_last
     final = (h_last + v_last * dt - 0.5 * g * dt * dt, v_last - g * dt)
-    return dict(event_times=np.array(times), post_velocities=np.array(v_after),
-                final_state=np.array(final))
+    return dict(event_times=np.array(times), post_velocities=np.array(v_after), final_state=np.array(final))
 
 
 def zeno_time(h0: float, g: float, e: float) -> float:
@@ -86,12 +89,14 @@ def thermostat() -> HybridSystem:
     def flow(power):
         return lambda t, x, p: jnp.array([p["a"] * (p["T_amb"] - x[0]) + power(p)])
 
-    off = Mode("off", flow(lambda p: 0.0), dim=1,
-               domain=lambda t, x, p: jnp.array([x[0] - (p["s"] - 4), (p["s"] + 4) - x[0]]))
-    heat = Mode("heat", flow(lambda p: p["P_heat"]), dim=1,
-                domain=lambda t, x, p: (p["s"] - 2) - x[0])
-    cool = Mode("cool", flow(lambda p: -p["P_cool"]), dim=1,
-                domain=lambda t, x, p: x[0] - (p["s"] + 2))
+    off = Mode(
+        "off",
+        flow(lambda p: 0.0),
+        dim=1,
+        domain=lambda t, x, p: jnp.array([x[0] - (p["s"] - 4), (p["s"] + 4) - x[0]]),
+    )
+    heat = Mode("heat", flow(lambda p: p["P_heat"]), dim=1, domain=lambda t, x, p: (p["s"] - 2) - x[0])
+    cool = Mode("cool", flow(lambda p: -p["P_cool"]), dim=1, domain=lambda t, x, p: x[0] - (p["s"] + 2))
     return HybridSystem(
         [off, heat, cool],
         [
@@ -112,8 +117,11 @@ def thermostat_closed_form(T0: float, mode0: str, p: dict, t1: float) -> dict:
     a, s = p["a"], p["s"]
     power = {"off": 0.0, "heat": p["P_heat"], "cool": -p["P_cool"]}
     # (target, threshold, sign): the guard sign * (T - threshold) <= 0 fires.
-    exits = {"off": [("heat", s - 4, 1.0), ("cool", s + 4, -1.0)], "heat": [("off", s - 2, -1.0)],
-             "cool": [("off", s + 2, 1.0)]}
+    exits = {
+        "off": [("heat", s - 4, 1.0), ("cool", s + 4, -1.0)],
+        "heat": [("off", s - 2, -1.0)],
+        "cool": [("off", s + 2, 1.0)],
+    }
     t, T, mode = 0.0, T0, mode0
     times, modes = [], [mode0]
     while True:
@@ -129,8 +137,7 @@ def thermostat_closed_form(T0: float, mode0: str, p: dict, t1: float) -> dict:
         dt, target, thr = best
         if t + dt > t1:
             T = T_eq + (T - T_eq) * math.exp(-a * (t1 - t))
-            return dict(event_times=np.array(times), modes=modes, final_state=np.array([T]),
-                        final_mode=mode)
+            return dict(event_times=np.array(times), modes=modes, final_state=np.array([T]), final_mode=mode)
         t, T, mode = t + dt, thr, target
         times.append(t)
         modes.append(mode)
@@ -147,11 +154,15 @@ def wall_particle() -> HybridSystem:
     Slide (2-D): (z, v_z), flow (v_z, -g - c v_z), viscous friction c along the wall.
     `args = {"g", "w", "c"}`.
     """
-    flight = Mode("flight", lambda t, x, p: jnp.array([x[2], x[3], 0.0 * x[2], -p["g"] + 0.0 * x[3]]),
-                  dim=4)
+    flight = Mode("flight", lambda t, x, p: jnp.array([x[2], x[3], 0.0 * x[2], -p["g"] + 0.0 * x[3]]), dim=4)
     slide = Mode("slide", lambda t, x, p: jnp.array([x[1], -p["g"] - p["c"] * x[1]]), dim=2)
-    hit = Transition("flight", "slide", guard=lambda t, x, p: p["w"] - x[0],
-                     reset=lambda t, x, p: jnp.array([x[1], x[3]]), name="stick")
+    hit = Transition(
+        "flight",
+        "slide",
+        guard=lambda t, x, p: p["w"] - x[0],
+        reset=lambda t, x, p: jnp.array([x[1], x[3]]),
+        name="stick",
+    )
     return HybridSystem([flight, slide], [hit])
 
 
@@ -165,8 +176,12 @@ def wall_particle_closed_form(x0, p: dict, t1: float) -> dict:
     v_inf = -g / c
     v = v_inf + (vzs - v_inf) * math.exp(-c * tau)
     zf = zs + v_inf * tau + (vzs - v_inf) * (1 - math.exp(-c * tau)) / c
-    return dict(event_time=ts, state_before=np.array([w, zs, vx, vzs]),
-                state_after=np.array([zs, vzs]), final_state=np.array([zf, v]))
+    return dict(
+        event_time=ts,
+        state_before=np.array([w, zs, vx, vzs]),
+        state_after=np.array([zs, vzs]),
+        final_state=np.array([zf, v]),
+    )
 
 
 # ----------------------------------------------------------------------------- ceiling
@@ -186,10 +201,14 @@ def ceiling_ball() -> HybridSystem:
     return HybridSystem(
         [flight, contact],
         [
-            Transition("flight", "contact", guard=lambda t, x, p: p["H"] - x[0],
-                       reset=lambda t, x, p: jnp.array([x[0], 0.0 * x[1]]), name="impact"),
-            Transition("contact", "flight", guard=lambda t, x, p: -p["g"] + 0.0 * x[0],
-                       name="lift-off"),
+            Transition(
+                "flight",
+                "contact",
+                guard=lambda t, x, p: p["H"] - x[0],
+                reset=lambda t, x, p: jnp.array([x[0], 0.0 * x[1]]),
+                name="impact",
+            ),
+            Transition("contact", "flight", guard=lambda t, x, p: -p["g"] + 0.0 * x[0], name="lift-off"),
         ],
     )
 
@@ -200,8 +219,9 @@ def ceiling_ball_closed_form(z0: float, v0: float, p: dict, t1: float) -> dict:
     disc = v0 * v0 - 2 * g * (H - z0)
     ts = (v0 - math.sqrt(disc)) / g
     dt = t1 - ts
-    return dict(event_time=ts, impact_velocity=v0 - g * ts,
-                final_state=np.array([H - 0.5 * g * dt * dt, -g * dt]))
+    return dict(
+        event_time=ts, impact_velocity=v0 - g * ts, final_state=np.array([H - 0.5 * g * dt * dt, -g * dt])
+    )
 
 
 # ----------------------------------------------------------------------------- rimless wheel
@@ -217,7 +237,8 @@ def rimless_wheel() -> HybridSystem:
     """
     stance = Mode("stance", lambda t, x, p: jnp.array([x[1], jnp.sin(x[0])]), dim=2)
     strike = Transition(
-        "stance", "stance",
+        "stance",
+        "stance",
         guard=lambda t, x, p: (p["gamma"] + p["alpha"]) - x[0],
         reset=lambda t, x, p: jnp.array([x[0] - 2 * p["alpha"], jnp.cos(2 * p["alpha"]) * x[1]]),
         name="heel strike",
@@ -247,8 +268,13 @@ def pendulum_wall() -> HybridSystem:
     `args = {"theta_w", "e"}`. A nonlinear example for saltation and variational checks.
     """
     swing = Mode("swing", lambda t, x, p: jnp.array([x[1], -jnp.sin(x[0])]), dim=2)
-    hit = Transition("swing", "swing", guard=lambda t, x, p: p["theta_w"] - x[0],
-                     reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]), name="wall")
+    hit = Transition(
+        "swing",
+        "swing",
+        guard=lambda t, x, p: p["theta_w"] - x[0],
+        reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]),
+        name="wall",
+    )
     return HybridSystem([swing], [hit])
 
 
@@ -270,7 +296,8 @@ def truncated_ball() -> HybridSystem:
     ball = bouncing_ball()
     rest = Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
     settle = Transition(
-        "flight", "rest",
+        "flight",
+        "rest",
         guard=lambda t, x, p: jnp.maximum(x[0], -x[1] - p["v_min"]),
         reset=lambda t, x, p: jnp.array([0.0 * x[0]]),
         name="settle",
@@ -302,13 +329,19 @@ def stiff_relay() -> HybridSystem:
     """
 
     def mode(u):
-        return Mode("up" if u > 0 else "down",
-                    lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]), dim=2)
+        return Mode(
+            "up" if u > 0 else "down",
+            lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]),
+            dim=2,
+        )
 
-    return HybridSystem([mode(1.0), mode(-1.0)], [
-        Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1], name="switch down"),
-        Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1], name="switch up"),
-    ])
+    return HybridSystem(
+        [mode(1.0), mode(-1.0)],
+        [
+            Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1], name="switch down"),
+            Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1], name="switch up"),
+        ],
+    )
 
 
 def stiff_relay_closed_form(s0: float, lam: float, t1: float) -> dict:
@@ -326,8 +359,11 @@ def stiff_relay_closed_form(s0: float, lam: float, t1: float) -> dict:
     n = len(times)
     u = 1.0 if n % 2 == 0 else -1.0
     s_end = s0 + t1 if n == 0 else -u * a + u * (t1 - times[-1])
-    return dict(event_times=np.array(times), final_state=np.array([s_end, s_end - u / lam]),
-                final_mode="up" if u > 0 else "down")
+    return dict(
+        event_times=np.array(times),
+        final_state=np.array([s_end, s_end - u / lam]),
+        final_mode="up" if u > 0 else "down",
+    )
 
 
 def van_der_pol_relay() -> HybridSystem:
@@ -339,13 +375,19 @@ def van_der_pol_relay() -> HybridSystem:
     """
 
     def mode(q):
-        return Mode("q+" if q > 0 else "q-",
-                    lambda t, x, mu: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + q]), dim=2)
+        return Mode(
+            "q+" if q > 0 else "q-",
+            lambda t, x, mu: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + q]),
+            dim=2,
+        )
 
-    return HybridSystem([mode(1.0), mode(-1.0)], [
-        Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
-        Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
-    ])
+    return HybridSystem(
+        [mode(1.0), mode(-1.0)],
+        [
+            Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
+            Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
+        ],
+    )
 
 
 # ----------------------------------------------------------------------------- neuron
@@ -359,8 +401,13 @@ def integrate_and_fire() -> HybridSystem:
     I > 1 (`integrate_and_fire_closed_form`).
     """
     sub = Mode("subthreshold", lambda t, x, p: (p["I"] - x) / p["tau"], dim=1)
-    spike = Transition("subthreshold", "subthreshold", guard=lambda t, x, p: 1.0 - x[0],
-                       reset=lambda t, x, p: jnp.zeros_like(x), name="spike")
+    spike = Transition(
+        "subthreshold",
+        "subthreshold",
+        guard=lambda t, x, p: 1.0 - x[0],
+        reset=lambda t, x, p: jnp.zeros_like(x),
+        name="spike",
+    )
     return HybridSystem([sub], [spike])
 
 
@@ -374,3 +421,161 @@ def integrate_and_fire_closed_form(current, tau, V0, num_spikes: int):
     """
     first = tau * jnp.log((current - V0) / (current - 1.0))
     return first + jnp.arange(num_spikes) * tau * jnp.log(current / (current - 1.0))
+
+
+# ----------------------------------------------------------------------------- scenes
+# Scenes (`hj.Scene`) whose hybrid systems `hj.contact_system` builds: modes are contact sets.
+
+
+def wedge_particle() -> Scene:
+    r"""A planar point particle of mass m above a floor and a line through the origin.
+
+    A. M. Johnson, "Hybrid Dynamical Systems", practice problem 1: q = (x, z), constraints
+    a_G = z >= 0 and a_H = -x sin(theta) + z cos(theta) >= 0, gravity -m g along z, plastic
+    impacts. `args = {"m", "g", "theta"}`; theta in (0, pi) sets which transitions are
+    achievable (see the scenes guide).
+    """
+
+    def a_H(t, q, p):
+        return -q[0] * jnp.sin(p["theta"]) + q[1] * jnp.cos(p["theta"])
+
+    return Scene(
+        dim=2,
+        mass=lambda q, p: p["m"] * jnp.eye(2),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1]]),
+        constraints=[Constraint("G", lambda t, q, p: q[1]), Constraint("H", a_H)],
+        q_range=(-1.0, 1.0),
+        dq_range=(-2.0, 2.0),
+        names=("x", "z"),
+    )
+
+
+def ball_scene() -> Scene:
+    r"""The bouncing ball as a scene: q = (h,), unit mass, gravity -g, a floor h >= 0 with
+    restitution `args["e"]`. Its system equals `bouncing_ball` (one mode, "free")."""
+    return Scene(
+        dim=1,
+        mass=lambda q, p: jnp.eye(1),
+        forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
+        constraints=[Constraint("floor", lambda t, q, p: q[0], restitution=lambda p: p["e"])],
+        q_range=(0.0, 2.0),
+        dq_range=(-5.0, 5.0),
+        names=("h",),
+    )
+
+
+def ceiling_scene() -> Scene:
+    r"""The ball thrown at a ceiling as a scene: q = (z,), unit mass, gravity -g, a ceiling
+    H - z >= 0 with plastic impact. Its system equals `ceiling_ball`: the contact force -g < 0
+    right after the impact lifts it off in a zero-length epoch."""
+    return Scene(
+        dim=1,
+        mass=lambda q, p: jnp.eye(1),
+        forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
+        constraints=[Constraint("ceiling", lambda t, q, p: p["H"] - q[0])],
+        q_range=(0.0, 2.0),
+        dq_range=(-5.0, 5.0),
+        names=("z",),
+    )
+
+
+def polygon_particle(num_walls: int) -> Scene:
+    r"""A planar point particle (unit mass, gravity -g) inside a regular polygon of `num_walls`
+    walls at distance r from the centre, plastic impacts.
+
+    Wall k has outward normal n_k = (sin(2 pi k / K), -cos(2 pi k / K)) (wall 0 is the floor) and
+    gap a_k = r - n_k . q >= 0. K = 1 is a floor, K = 2 a floor and a ceiling. Of the 2^K contact
+    sets only the free one, single walls and corners of adjacent walls can be reached.
+    `args = {"g", "r"}`.
+    """
+    K = int(num_walls)
+    if K < 1:
+        raise ValueError(f"polygon_particle: num_walls must be >= 1, got {num_walls}.")
+
+    def wall(k):
+        s, c = math.sin(2 * math.pi * k / K), math.cos(2 * math.pi * k / K)
+        return Constraint(f"w{k}", lambda t, q, p: p["r"] - (s * q[0] - c * q[1]))
+
+    return Scene(
+        dim=2,
+        mass=lambda q, p: jnp.eye(2),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["g"] + 0.0 * q[1]]),
+        constraints=[wall(k) for k in range(K)],
+        q_range=(-1.2, 1.2),
+        dq_range=(-3.0, 3.0),
+        names=("x", "z"),
+    )
+
+
+def rimless_wheel_scene(inertia: float = 0.1) -> tuple[Scene, Relabel]:
+    r"""McGeer's rimless wheel on a slope as a scene, with the relabelling of its spokes.
+
+    q = (x, z, phi): the hub in the slope's frame (x downhill, z normal to the slope) and the
+    angle of spoke 0 from the slope's normal; hub mass m, moment of inertia `inertia` * m l^2
+    about the hub (> 0: the mass matrix must be invertible; `rimless_wheel` is the limit 0). Spoke i (i = 0,
+    1, 2 spokes apart by 2 alpha) ends at (x - l sin(phi - 2 alpha i), z - l cos(phi - 2 alpha i));
+    its gap is that point's height and its tangent its x: a foot that touches sticks (plastic
+    impact, unlimited friction). Gravity m g (sin gamma, -cos gamma, 0).
+    `args = {"alpha", "gamma", "g", "l", "m"}`.
+
+    The relabelling identifies the contact set {spoke1} with {spoke0}: phi -> phi - 2 alpha and
+    the new foot moved to x = 0, so that the rolling gait is a periodic orbit. Returns
+    `(scene, relabel)`; build with `contact_system(scene, ["spoke0"], args, relabels=[relabel])`.
+    """
+    if not inertia > 0:
+        raise ValueError(f"rimless_wheel_scene: `inertia` must be > 0, got {inertia}.")
+
+    def tip(i):
+        def point(q, p):
+            th = q[2] - 2 * i * p["alpha"]
+            return q[0] - p["l"] * jnp.sin(th), q[1] - p["l"] * jnp.cos(th)
+
+        return point
+
+    def spoke(i):
+        return Constraint(
+            f"spoke{i}", lambda t, q, p: tip(i)(q, p)[1], tangent=lambda t, q, p: tip(i)(q, p)[0]
+        )
+
+    def mass(q, p):
+        ml2 = p["m"] * p["l"] ** 2
+        return jnp.diag(jnp.stack([p["m"], p["m"], inertia * ml2 + 0.0 * q[2]]))
+
+    def forces(t, q, dq, p):
+        w = p["m"] * p["g"]
+        return jnp.stack([w * jnp.sin(p["gamma"]), -w * jnp.cos(p["gamma"]), 0.0 * q[2]])
+
+    def next_stance(t, q, p):
+        x1 = tip(1)(q, p)[0]
+        return jnp.stack([q[0] - x1, q[1], q[2] - 2 * p["alpha"]])
+
+    scene = Scene(
+        dim=3,
+        mass=mass,
+        forces=forces,
+        constraints=[spoke(0), spoke(1)],
+        q_range=((-0.5, 0.5, -0.5), (0.5, 1.0, 0.5)),
+        dq_range=(-1.0, 1.0),
+        names=("x", "z", "phi"),
+    )
+    return scene, Relabel(("spoke1",), ("spoke0",), q_map=next_stance)
+
+
+def rimless_wheel_scene_closed_form(alpha: float, gamma: float, g: float, l: float, inertia: float) -> dict:
+    """The rolling gait of `rimless_wheel_scene`, by hand.
+
+    Stance: (m l^2 + I) theta'' = m g l sin(theta + gamma), theta the stance spoke's angle
+    from the slope's normal, from -alpha to alpha; energy gives omega_-^2 = omega_+^2 +
+    4 kappa sin(alpha) sin(gamma), kappa = m g l / (m l^2 + I). The strike conserves angular
+    momentum about the new foot: omega_+' = c omega_-, c = (m l^2 cos(2 alpha) + I) / (m l^2 + I).
+    Fixed point omega*^2 = 4 c^2 kappa sin(alpha) sin(gamma) / (1 - c^2); return-map
+    multiplier c^2. The state just after a strike: hub at (-l sin(alpha), l cos(alpha)), phi =
+    -alpha, velocities of a rotation omega* about the foot at the origin.
+    """
+    kappa = g / (l * (1.0 + inertia))
+    c = (math.cos(2 * alpha) + inertia) / (1.0 + inertia)
+    w = math.sqrt(4 * c * c * kappa * math.sin(alpha) * math.sin(gamma) / (1 - c * c))
+    th = -alpha
+    q = np.array([l * math.sin(th), l * math.cos(th), th])
+    dq = np.array([l * w * math.cos(th), -l * w * math.sin(th), w])
+    return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
