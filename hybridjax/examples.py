@@ -43,9 +43,8 @@ def bouncing_ball() -> HybridSystem:
     return HybridSystem([flight], [bounce])
 
 
-def bouncing_ball_closed_form(
-    h0: float, v0: float, g: float, e: float, t1: float, max_events: int = 10_000
-) -> dict:
+def bouncing_ball_closed_form(h0: float, v0: float, g: float, e: float, t1: float,
+                              max_events: int = 10_000) -> dict:
     """Impact times, post-impact velocities and the state at t1 of the bouncing ball.
 
     First impact at t_1 = (v0 + sqrt(v0^2 + 2 g h0)) / g with speed w_1 = sqrt(v0^2 + 2 g h0);
@@ -63,7 +62,8 @@ def bouncing_ball_closed_form(
         t = t + 2 * w / g
     dt = t1 - t_last
     final = (h_last + v_last * dt - 0.5 * g * dt * dt, v_last - g * dt)
-    return dict(event_times=np.array(times), post_velocities=np.array(v_after), final_state=np.array(final))
+    return dict(event_times=np.array(times), post_velocities=np.array(v_after),
+                final_state=np.array(final))
 
 
 def zeno_time(h0: float, g: float, e: float) -> float:
@@ -89,14 +89,12 @@ def thermostat() -> HybridSystem:
     def flow(power):
         return lambda t, x, p: jnp.array([p["a"] * (p["T_amb"] - x[0]) + power(p)])
 
-    off = Mode(
-        "off",
-        flow(lambda p: 0.0),
-        dim=1,
-        domain=lambda t, x, p: jnp.array([x[0] - (p["s"] - 4), (p["s"] + 4) - x[0]]),
-    )
-    heat = Mode("heat", flow(lambda p: p["P_heat"]), dim=1, domain=lambda t, x, p: (p["s"] - 2) - x[0])
-    cool = Mode("cool", flow(lambda p: -p["P_cool"]), dim=1, domain=lambda t, x, p: x[0] - (p["s"] + 2))
+    off = Mode("off", flow(lambda p: 0.0), dim=1,
+               domain=lambda t, x, p: jnp.array([x[0] - (p["s"] - 4), (p["s"] + 4) - x[0]]))
+    heat = Mode("heat", flow(lambda p: p["P_heat"]), dim=1,
+                domain=lambda t, x, p: (p["s"] - 2) - x[0])
+    cool = Mode("cool", flow(lambda p: -p["P_cool"]), dim=1,
+                domain=lambda t, x, p: x[0] - (p["s"] + 2))
     return HybridSystem(
         [off, heat, cool],
         [
@@ -117,11 +115,8 @@ def thermostat_closed_form(T0: float, mode0: str, p: dict, t1: float) -> dict:
     a, s = p["a"], p["s"]
     power = {"off": 0.0, "heat": p["P_heat"], "cool": -p["P_cool"]}
     # (target, threshold, sign): the guard sign * (T - threshold) <= 0 fires.
-    exits = {
-        "off": [("heat", s - 4, 1.0), ("cool", s + 4, -1.0)],
-        "heat": [("off", s - 2, -1.0)],
-        "cool": [("off", s + 2, 1.0)],
-    }
+    exits = {"off": [("heat", s - 4, 1.0), ("cool", s + 4, -1.0)], "heat": [("off", s - 2, -1.0)],
+             "cool": [("off", s + 2, 1.0)]}
     t, T, mode = 0.0, T0, mode0
     times, modes = [], [mode0]
     while True:
@@ -137,7 +132,8 @@ def thermostat_closed_form(T0: float, mode0: str, p: dict, t1: float) -> dict:
         dt, target, thr = best
         if t + dt > t1:
             T = T_eq + (T - T_eq) * math.exp(-a * (t1 - t))
-            return dict(event_times=np.array(times), modes=modes, final_state=np.array([T]), final_mode=mode)
+            return dict(event_times=np.array(times), modes=modes, final_state=np.array([T]),
+                        final_mode=mode)
         t, T, mode = t + dt, thr, target
         times.append(t)
         modes.append(mode)
@@ -154,15 +150,11 @@ def wall_particle() -> HybridSystem:
     Slide (2-D): (z, v_z), flow (v_z, -g - c v_z), viscous friction c along the wall.
     `args = {"g", "w", "c"}`.
     """
-    flight = Mode("flight", lambda t, x, p: jnp.array([x[2], x[3], 0.0 * x[2], -p["g"] + 0.0 * x[3]]), dim=4)
+    flight = Mode("flight", lambda t, x, p: jnp.array([x[2], x[3], 0.0 * x[2], -p["g"] + 0.0 * x[3]]),
+                  dim=4)
     slide = Mode("slide", lambda t, x, p: jnp.array([x[1], -p["g"] - p["c"] * x[1]]), dim=2)
-    hit = Transition(
-        "flight",
-        "slide",
-        guard=lambda t, x, p: p["w"] - x[0],
-        reset=lambda t, x, p: jnp.array([x[1], x[3]]),
-        name="stick",
-    )
+    hit = Transition("flight", "slide", guard=lambda t, x, p: p["w"] - x[0],
+                     reset=lambda t, x, p: jnp.array([x[1], x[3]]), name="stick")
     return HybridSystem([flight, slide], [hit])
 
 
@@ -176,12 +168,8 @@ def wall_particle_closed_form(x0, p: dict, t1: float) -> dict:
     v_inf = -g / c
     v = v_inf + (vzs - v_inf) * math.exp(-c * tau)
     zf = zs + v_inf * tau + (vzs - v_inf) * (1 - math.exp(-c * tau)) / c
-    return dict(
-        event_time=ts,
-        state_before=np.array([w, zs, vx, vzs]),
-        state_after=np.array([zs, vzs]),
-        final_state=np.array([zf, v]),
-    )
+    return dict(event_time=ts, state_before=np.array([w, zs, vx, vzs]),
+                state_after=np.array([zs, vzs]), final_state=np.array([zf, v]))
 
 
 # ----------------------------------------------------------------------------- ceiling
@@ -201,14 +189,10 @@ def ceiling_ball() -> HybridSystem:
     return HybridSystem(
         [flight, contact],
         [
-            Transition(
-                "flight",
-                "contact",
-                guard=lambda t, x, p: p["H"] - x[0],
-                reset=lambda t, x, p: jnp.array([x[0], 0.0 * x[1]]),
-                name="impact",
-            ),
-            Transition("contact", "flight", guard=lambda t, x, p: -p["g"] + 0.0 * x[0], name="lift-off"),
+            Transition("flight", "contact", guard=lambda t, x, p: p["H"] - x[0],
+                       reset=lambda t, x, p: jnp.array([x[0], 0.0 * x[1]]), name="impact"),
+            Transition("contact", "flight", guard=lambda t, x, p: -p["g"] + 0.0 * x[0],
+                       name="lift-off"),
         ],
     )
 
@@ -219,9 +203,8 @@ def ceiling_ball_closed_form(z0: float, v0: float, p: dict, t1: float) -> dict:
     disc = v0 * v0 - 2 * g * (H - z0)
     ts = (v0 - math.sqrt(disc)) / g
     dt = t1 - ts
-    return dict(
-        event_time=ts, impact_velocity=v0 - g * ts, final_state=np.array([H - 0.5 * g * dt * dt, -g * dt])
-    )
+    return dict(event_time=ts, impact_velocity=v0 - g * ts,
+                final_state=np.array([H - 0.5 * g * dt * dt, -g * dt]))
 
 
 # ----------------------------------------------------------------------------- rimless wheel
@@ -237,8 +220,7 @@ def rimless_wheel() -> HybridSystem:
     """
     stance = Mode("stance", lambda t, x, p: jnp.array([x[1], jnp.sin(x[0])]), dim=2)
     strike = Transition(
-        "stance",
-        "stance",
+        "stance", "stance",
         guard=lambda t, x, p: (p["gamma"] + p["alpha"]) - x[0],
         reset=lambda t, x, p: jnp.array([x[0] - 2 * p["alpha"], jnp.cos(2 * p["alpha"]) * x[1]]),
         name="heel strike",
@@ -268,13 +250,8 @@ def pendulum_wall() -> HybridSystem:
     `args = {"theta_w", "e"}`. A nonlinear example for saltation and variational checks.
     """
     swing = Mode("swing", lambda t, x, p: jnp.array([x[1], -jnp.sin(x[0])]), dim=2)
-    hit = Transition(
-        "swing",
-        "swing",
-        guard=lambda t, x, p: p["theta_w"] - x[0],
-        reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]),
-        name="wall",
-    )
+    hit = Transition("swing", "swing", guard=lambda t, x, p: p["theta_w"] - x[0],
+                     reset=lambda t, x, p: jnp.array([x[0], -p["e"] * x[1]]), name="wall")
     return HybridSystem([swing], [hit])
 
 
@@ -296,8 +273,7 @@ def truncated_ball() -> HybridSystem:
     ball = bouncing_ball()
     rest = Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
     settle = Transition(
-        "flight",
-        "rest",
+        "flight", "rest",
         guard=lambda t, x, p: jnp.maximum(x[0], -x[1] - p["v_min"]),
         reset=lambda t, x, p: jnp.array([0.0 * x[0]]),
         name="settle",
@@ -329,19 +305,13 @@ def stiff_relay() -> HybridSystem:
     """
 
     def mode(u):
-        return Mode(
-            "up" if u > 0 else "down",
-            lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]),
-            dim=2,
-        )
+        return Mode("up" if u > 0 else "down",
+                    lambda t, x, lam: jnp.array([u + 0.0 * x[0], -lam * (x[1] - x[0])]), dim=2)
 
-    return HybridSystem(
-        [mode(1.0), mode(-1.0)],
-        [
-            Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1], name="switch down"),
-            Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1], name="switch up"),
-        ],
-    )
+    return HybridSystem([mode(1.0), mode(-1.0)], [
+        Transition("up", "down", guard=lambda t, x, lam: 1.0 - x[1], name="switch down"),
+        Transition("down", "up", guard=lambda t, x, lam: 1.0 + x[1], name="switch up"),
+    ])
 
 
 def stiff_relay_closed_form(s0: float, lam: float, t1: float) -> dict:
@@ -359,11 +329,8 @@ def stiff_relay_closed_form(s0: float, lam: float, t1: float) -> dict:
     n = len(times)
     u = 1.0 if n % 2 == 0 else -1.0
     s_end = s0 + t1 if n == 0 else -u * a + u * (t1 - times[-1])
-    return dict(
-        event_times=np.array(times),
-        final_state=np.array([s_end, s_end - u / lam]),
-        final_mode="up" if u > 0 else "down",
-    )
+    return dict(event_times=np.array(times), final_state=np.array([s_end, s_end - u / lam]),
+                final_mode="up" if u > 0 else "down")
 
 
 def van_der_pol_relay() -> HybridSystem:
@@ -375,19 +342,13 @@ def van_der_pol_relay() -> HybridSystem:
     """
 
     def mode(q):
-        return Mode(
-            "q+" if q > 0 else "q-",
-            lambda t, x, mu: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + q]),
-            dim=2,
-        )
+        return Mode("q+" if q > 0 else "q-",
+                    lambda t, x, mu: jnp.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0] + q]), dim=2)
 
-    return HybridSystem(
-        [mode(1.0), mode(-1.0)],
-        [
-            Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
-            Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
-        ],
-    )
+    return HybridSystem([mode(1.0), mode(-1.0)], [
+        Transition("q+", "q-", guard=lambda t, x, mu: 0.5 - x[0], name="relay off"),
+        Transition("q-", "q+", guard=lambda t, x, mu: 0.5 + x[0], name="relay on"),
+    ])
 
 
 # ----------------------------------------------------------------------------- neuron
@@ -401,13 +362,8 @@ def integrate_and_fire() -> HybridSystem:
     I > 1 (`integrate_and_fire_closed_form`).
     """
     sub = Mode("subthreshold", lambda t, x, p: (p["I"] - x) / p["tau"], dim=1)
-    spike = Transition(
-        "subthreshold",
-        "subthreshold",
-        guard=lambda t, x, p: 1.0 - x[0],
-        reset=lambda t, x, p: jnp.zeros_like(x),
-        name="spike",
-    )
+    spike = Transition("subthreshold", "subthreshold", guard=lambda t, x, p: 1.0 - x[0],
+                       reset=lambda t, x, p: jnp.zeros_like(x), name="spike")
     return HybridSystem([sub], [spike])
 
 
@@ -561,7 +517,9 @@ def rimless_wheel_scene(inertia: float = 0.1) -> tuple[Scene, Relabel]:
     return scene, Relabel(("spoke1",), ("spoke0",), q_map=next_stance)
 
 
-def rimless_wheel_scene_closed_form(alpha: float, gamma: float, g: float, l: float, inertia: float) -> dict:
+def rimless_wheel_scene_closed_form(
+    alpha: float, gamma: float, g: float, length: float, inertia: float
+) -> dict:
     """The rolling gait of `rimless_wheel_scene`, by hand.
 
     Stance: (m l^2 + I) theta'' = m g l sin(theta + gamma), theta the stance spoke's angle
@@ -572,10 +530,10 @@ def rimless_wheel_scene_closed_form(alpha: float, gamma: float, g: float, l: flo
     multiplier c^2. The state just after a strike: hub at (-l sin(alpha), l cos(alpha)), phi =
     -alpha, velocities of a rotation omega* about the foot at the origin.
     """
-    kappa = g / (l * (1.0 + inertia))
+    kappa = g / (length * (1.0 + inertia))
     c = (math.cos(2 * alpha) + inertia) / (1.0 + inertia)
     w = math.sqrt(4 * c * c * kappa * math.sin(alpha) * math.sin(gamma) / (1 - c * c))
     th = -alpha
-    q = np.array([l * math.sin(th), l * math.cos(th), th])
-    dq = np.array([l * w * math.cos(th), -l * w * math.sin(th), w])
+    q = np.array([length * math.sin(th), length * math.cos(th), th])
+    dq = np.array([length * w * math.cos(th), -length * w * math.sin(th), w])
     return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
