@@ -589,7 +589,9 @@ def _search(eq, ineq, ts, xs, queries, args_batch, tol, num_starts):
     def one(Q, args):
         return find_point(eq, ineq, ts, xs, (args, Q), tol=tol, num_starts=num_starts)
 
-    return jax.vmap(lambda Q: jax.vmap(lambda a: one(Q, a))(args_batch))(queries)
+    # The index makes the inner vmap well defined for `args` without arrays (None).
+    index, args_batch = args_batch
+    return jax.vmap(lambda Q: jax.vmap(lambda i, a: one(Q, a))(index, args_batch))(queries)
 
 
 # ----------------------------------------------------------------------------- the system
@@ -758,7 +760,10 @@ def contact_system(
     K, n = len(scene.constraints), scene.dim
     dtype = jnp.result_type(float)
     unilateral = {i for i, c in enumerate(scene.constraints) if c.kind == UNILATERAL}
-    args_batch = jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values)
+    args_batch = (
+        jnp.arange(len(values)),
+        jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
+    )
 
     key = jax.random.key(seed)
     (qlo, qhi), (vlo, vhi) = _range(scene.q_range, n, "q_range"), _range(scene.dq_range, n, "dq_range")
@@ -851,7 +856,11 @@ def contact_system(
             found_v = w.found[i]
             if found_v.any():
                 v = int(np.argmax(found_v))
-                where = "" if found_v.all() else f", only for args_values {list(np.flatnonzero(found_v))}"
+                where = (
+                    ""
+                    if found_v.all()
+                    else f", only for args_values {[int(i) for i in np.flatnonzero(found_v)]}"
+                )
                 text = f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
                 T = canonical(T)[0]
                 if T not in built:
