@@ -81,8 +81,17 @@ def test_args_values_union_is_reported():
 
 def _wedge_run(x0, mode0, theta, saveat):
     # mode0 as an array: a Python int is a constant of the compiled program (one compile per value).
-    return hj.simulate(WEDGES[math.pi / 4], jnp.asarray(x0), jnp.asarray(mode0), 0.0, 1.0, wedge_args(theta),
-                       stepsize_controller=TIGHT, saveat=jnp.asarray(saveat), max_epochs=8)
+    return hj.simulate(
+        WEDGES[math.pi / 4],
+        jnp.asarray(x0),
+        jnp.asarray(mode0),
+        0.0,
+        1.0,
+        wedge_args(theta),
+        stepsize_controller=TIGHT,
+        saveat=jnp.asarray(saveat),
+        max_epochs=8,
+    )
 
 
 def test_wedge_execution_and_contact_forces_by_hand():
@@ -153,8 +162,15 @@ def test_rimless_wheel_gait_by_hand():
     scene, relabel = examples.rimless_wheel_scene(INERTIA)
     # Speeds up to 0.7: the foot's force m (g cos - l omega^2) stays positive, so the wheel never
     # leaves the ground and the build keeps the stance set alone.
-    scene = type(scene)(scene.dim, scene.mass, scene.forces, scene.constraints, q_range=scene.q_range,
-                        dq_range=(-0.7, 0.7), names=scene.names)
+    scene = type(scene)(
+        scene.dim,
+        scene.mass,
+        scene.forces,
+        scene.constraints,
+        q_range=scene.q_range,
+        dq_range=(-0.7, 0.7),
+        names=scene.names,
+    )
     args = {k: jnp.asarray(v) for k, v in WHEEL_ARGS.items()}
     system = hj.contact_system(scene, ["spoke0"], args, relabels=[relabel])
     assert [m.name for m in system.modes][:1] == ["spoke0"]
@@ -196,8 +212,9 @@ def test_definition_errors_name_the_constraint():
         hj.Constraint("floor", lambda t, q, a: q[0], restitution=1.5)
     with pytest.raises(ValueError, match="'floor'.*kind"):
         hj.Constraint("floor", lambda t, q, a: q[0], kind="sometimes")
-    bad = hj.Scene(2, lambda q, a: jnp.eye(2), lambda t, q, dq, a: q,
-                   [hj.Constraint("wall", lambda t, q, a: q)])
+    bad = hj.Scene(
+        2, lambda q, a: jnp.eye(2), lambda t, q, dq, a: q, [hj.Constraint("wall", lambda t, q, a: q)]
+    )
     with pytest.raises(ValueError, match="Constraint 'wall'.*shape"):
         hj.contact_system(bad, ["free"])
     with pytest.raises(ValueError, match="Unknown constraint 'roof'"):
@@ -205,8 +222,13 @@ def test_definition_errors_name_the_constraint():
 
 
 def test_redundant_contacts_error_names_them():
-    scene = hj.Scene(1, lambda q, a: jnp.eye(1), lambda t, q, dq, a: -9.8 + 0 * q,
-                     [hj.Constraint("left", lambda t, q, a: q[0]), hj.Constraint("right", lambda t, q, a: q[0])],
-                     q_range=(0.0, 1.0), dq_range=(-1.0, 1.0))
+    scene = hj.Scene(
+        1,
+        lambda q, a: jnp.eye(1),
+        lambda t, q, dq, a: -9.8 + 0 * q,
+        [hj.Constraint("left", lambda t, q, a: q[0]), hj.Constraint("right", lambda t, q, a: q[0])],
+        q_range=(0.0, 1.0),
+        dq_range=(-1.0, 1.0),
+    )
     with pytest.raises(ValueError, match=r"dependent constraints \['left', 'right'\]"):
         hj.contact_system(scene, [["left", "right"]])
