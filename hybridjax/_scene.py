@@ -507,10 +507,10 @@ class _ModeFunctions(eqx.Module):
         ddq, _ = self.solve(t, x, args)
         return jnp.concatenate([x[self.scene.dim :], ddq])
 
-    def force(self, j):
-        """lambda_j, the force of held constraint j (a lift-off guard)."""
+    def force(self, j, offset=0.0):
+        """lambda_j + offset, the force of held constraint j (a lift-off guard)."""
         pos = j if self.form == "mask" else self.held.index(j)
-        return lambda t, x, args: self.solve(t, x, args)[1][pos]
+        return lambda t, x, args: self.solve(t, x, args)[1][pos] + offset
 
 
 def _terminal_flow(t, x, args):
@@ -955,7 +955,13 @@ def contact_system(
                     terminals[term] = None
                     transitions.append(
                         Transition(
-                            src, term, guard=mode_fns[A].force(j), name=f"lift-off {cname}: {src} -> {term}"
+                            src,
+                            term,
+                            # The search found no state with lambda_j <= -margin; a force between
+                            # that and 0 (a contact that carries none, such as a wall beside a
+                            # resting point, whose force is 0 up to rounding) stays held.
+                            guard=mode_fns[A].force(j, margin),
+                            name=f"lift-off {cname}: {src} -> {term}",
                         )
                     )
                     pruned_lines.append(

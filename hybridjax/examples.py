@@ -10,7 +10,7 @@
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
 - `integrate_and_fire`: a leaky integrate-and-fire neuron, a long spike train in closed form.
 - Scenes for `contact_system`: `wedge_particle` (the chapter's practice problem 1), `ball_scene`,
-  `ceiling_scene`, `polygon_particle` (a point inside K walls), `rimless_wheel_scene`.
+  `ceiling_scene`, `polygon_particle` (a point inside K walls), `rimless_wheel_scene`, `rod_scene`.
 
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
@@ -537,3 +537,27 @@ def rimless_wheel_scene_closed_form(
     q = np.array([length * math.sin(th), length * math.cos(th), th])
     dq = np.array([length * w * math.cos(th), -length * w * math.sin(th), w])
     return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
+
+
+def rod_scene() -> Scene:
+    r"""A rod of mass m and length L falling in a vertical plane onto a frictionless floor.
+
+    q = (x, z, phi): the centre and the angle from horizontal; M = diag(m, m, m L^2 / 12);
+    gravity -m g along z. Its ends are the contacts "left" (gap z - (L/2) sin phi) and "right"
+    (gap z + (L/2) sin phi), plastic. Dropped tilted, it lands on its lower end, pivots and slides
+    on it, then lands on the other: which end hits first, whether the first one is released and
+    whether it comes to rest depend on the order of these events. `args = {"m", "g", "L"}`.
+    """
+
+    def end(sign):
+        return lambda t, q, p: q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])
+
+    return Scene(
+        dim=3,
+        mass=lambda q, p: jnp.diag(jnp.stack([p["m"], p["m"], p["m"] * p["L"] ** 2 / 12 + 0.0 * q[2]])),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1], 0.0 * q[2]]),
+        constraints=[Constraint("left", end(-1.0)), Constraint("right", end(1.0))],
+        q_range=((-0.5, 0.0, -1.0), (0.5, 1.0, 1.0)),
+        dq_range=(-2.0, 2.0),
+        names=("x", "z", "phi"),
+    )

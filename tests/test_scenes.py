@@ -232,3 +232,71 @@ def test_redundant_contacts_error_names_them():
     )
     with pytest.raises(ValueError, match=r"dependent constraints \['left', 'right'\]"):
         hj.contact_system(scene, [["left", "right"]])
+
+
+# ----------------------------------------------------------------------------- a rod, two contacts
+
+ROD_ARGS = {"m": jnp.asarray(1.0), "g": jnp.asarray(G), "L": jnp.asarray(1.0)}
+
+
+def rod_by_hand(x0, z0, phi0, L=1.0, g=G):
+    """The rod dropped from rest, computed without hybridjax: free fall; the plastic impact of
+    the left end, by hand; pivoting and sliding on it (frictionless: x stays), the reduced
+    equation of phi integrated by scipy until the right end lands (phi = 0); there, holding both
+    ends stops z and phi, and both impulses are positive (checked), so it rests."""
+    from scipy.integrate import solve_ivp
+
+    m, I, h = 1.0, L**2 / 12, L / 2
+    t1 = math.sqrt(2 * (z0 - h * math.sin(phi0)) / g)
+    vz = -g * t1
+    # Left end: J = (0, 1, -h cos phi); P = -J dq / (J M^-1 J^T).
+    c = h * math.cos(phi0)
+    P = -vz / (1 / m + c * c / I)
+    vz, w = vz + P / m, -c * P / I
+
+    # Pivoting on the left end: z = h sin phi; Lagrange's equation in phi.
+    def rhs(t, y):
+        phi, w = y
+        a = m * h * h * math.cos(phi) ** 2 + I
+        return [w, (m * h * h * math.cos(phi) * math.sin(phi) * w * w - m * g * h * math.cos(phi)) / a]
+
+    def lands(t, y):
+        return y[0]
+
+    lands.terminal, lands.direction = True, -1
+
+    def force(y):  # lambda_left = m (z'' + g), z'' = h (cos phi phi'' - sin phi phi'^2)
+        phi, w = y
+        return m * (h * (math.cos(phi) * rhs(0, y)[1] - math.sin(phi) * w * w) + g)
+
+    sol = solve_ivp(rhs, (0, 5), [phi0, w], events=lands, rtol=1e-12, atol=1e-12, dense_output=True)
+    t2 = t1 + sol.t_events[0][0]
+    w2 = sol.y_events[0][0][1]
+    forces = [force(sol.sol(t)) for t in np.linspace(0, sol.t[-1], 50)]
+    # Both ends held at phi = 0: P_left + P_right = -m h w2, h (P_right - P_left) = -I w2.
+    P_left = 0.5 * (-m * h * w2 + I * w2 / h)
+    P_right = 0.5 * (-m * h * w2 - I * w2 / h)
+    return dict(t=(t1, t2), w_before=w2, min_force=min(forces), impulses=(P_left, P_right))
+
+
+def test_rod_lands_on_one_end_then_the_other_and_rests():
+    system = hj.contact_system(examples.rod_scene(), ["free"], ROD_ARGS)
+    ref = rod_by_hand(0.1, 0.5, 0.3)
+    assert ref["min_force"] > 0 and min(ref["impulses"]) > 0  # no lift-off, no release
+    sol = hj.simulate(
+        system,
+        jnp.array([0.1, 0.5, 0.3, 0.0, 0.0, 0.0]),
+        "free",
+        0.0,
+        1.0,
+        ROD_ARGS,
+        stepsize_controller=TIGHT,
+        saveat=jnp.array([0.9]),
+        max_epochs=8,
+    )
+    names = [system.modes[int(m)].name for m in sol.epoch_modes[: int(sol.num_events) + 1]]
+    assert names == ["free", "left", "left+right"]
+    np.testing.assert_allclose(sol.event_times[:2], ref["t"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.states_before[1, 5], ref["w_before"], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sol.final_state, [0.1, 0, 0, 0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(system.contact_forces(sol), [[G / 2, G / 2]], atol=1e-9)
