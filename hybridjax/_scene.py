@@ -644,8 +644,8 @@ class ContactSystem(HybridSystem):
         r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
         per sticking contact's tangential force, as `force_names`; 0 for a constraint not held) at
         the saved states `sol.ts`, `sol.ys` of a solution of this system
-        (NaN at save times the execution did not reach). `args` defaults to `sol.args`; for a
-        batch it must be the one `args` of every execution."""
+        (NaN at save times the execution did not reach). `args` defaults to `sol.args` (for a
+        batch, one value per execution)."""
         args = sol.args if args is None else args
         scene, K = self.scene, len(self.scene.constraints)
         fns, owners = rows(scene, range(K))
@@ -657,7 +657,7 @@ class ContactSystem(HybridSystem):
         least_norm = any(self.least_norm_modes)
         n = scene.dim
 
-        def one(t, y, mode):
+        def one(t, y, mode, args):
             ok = (mode >= 0) & jnp.isfinite(t)
             mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
             y = jnp.where(ok, y, 0.0)
@@ -665,10 +665,15 @@ class ContactSystem(HybridSystem):
             _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
             return jnp.where(ok, lam * mask, jnp.nan)
 
-        f = one
-        for _ in range(sol.ts.ndim):
-            f = jax.vmap(f)
-        return f(sol.ts, sol.ys, sol.saved_modes)
+        def execution(ts, ys, modes, args):
+            return jax.vmap(lambda t, y, m: one(t, y, m, args))(ts, ys, modes)
+
+        if sol.ts.ndim == 1:
+            return execution(sol.ts, sol.ys, sol.saved_modes, args)
+        # A batch: `sol.args` holds one value per execution (leaves with the batch's leading axis).
+        size = sol.ts.shape[0]
+        axes = jtu.tree_map(lambda a: 0 if jnp.ndim(a) >= 1 and jnp.shape(a)[0] == size else None, args)
+        return jax.vmap(execution, in_axes=(0, 0, 0, axes))(sol.ts, sol.ys, sol.saved_modes, args)
 
     def __repr__(self) -> str:
         return "\n".join([f"Contact{super().__repr__()}", *self.report])
