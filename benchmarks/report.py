@@ -542,7 +542,8 @@ def scenes(res: dict) -> list[str]:
     for r in res["rows"]:
         body.append([r["K"], r["subsets"], r["modes_built"], r["modes"], r["transitions"],
                      f"{r['branch_build_s']:.1f}", f"{r['branch_compile_s']:.1f}", _rate(r["branch_exec_per_s"]),
-                     f"{r['mask_compile_s']:.1f}", _rate(r["mask_exec_per_s"]),
+                     f"{r['mask_compile_s']:.1f}" if "mask_compile_s" in r else "",
+                     _rate(r["mask_exec_per_s"]) if "mask_exec_per_s" in r else "",
                      ", ".join(f"{k} {v}" for k, v in r["branch_statuses"].items())])
     out += _table(["K", "2^K", "sets built", "modes", "transitions", "build s", "compile s (branch)",
                    "executions/s (branch)", "compile s (mask)", "executions/s (mask)", "statuses"], body)
