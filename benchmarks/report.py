@@ -547,6 +547,10 @@ def scenes(res: dict) -> list[str]:
                      ", ".join(f"{k} {v}" for k, v in r["branch_statuses"].items())])
     out += _table(["K", "2^K", "sets built", "modes", "transitions", "build s", "compile s (branch)",
                    "executions/s (branch)", "compile s (mask)", "executions/s (mask)", "statuses"], body)
+    missing = sorted(set(range(1, 9)) - {r["K"] for r in res["rows"]})
+    if missing:
+        out += [f"K = {', '.join(map(str, missing))}: not in this run (`python benchmarks/scenes.py "
+                f"{' '.join(map(str, missing))}` adds them to the results file).", ""]
     out += ["The sets built grow as 2K + 1 at most (free, each wall, the corners of adjacent walls), not as 2^K; "
             "compile time grows with the modes and transitions built. `contact_system` uses the branch form by "
             "default, the faster of the two here."]
