@@ -50,8 +50,11 @@ def one_k(k: int, forms) -> dict:
         t = time.perf_counter()
         system = hj.contact_system(scene, ["free"], args, form=form)
         build_s = time.perf_counter() - t
-        fn = jax.jit(lambda x, s=system: hj.simulate_batch(s, x, "free", 0.0, T1, args, stepsize_controller=ctrl,
-                                                           max_epochs=48))
+        fn = jax.jit(
+            lambda x, s=system: hj.simulate_batch(
+                s, x, "free", 0.0, T1, args, stepsize_controller=ctrl, max_epochs=48
+            )
+        )
         t = time.perf_counter()
         compiled = fn.trace(x0).lower().compile()
         compile_s = time.perf_counter() - t
@@ -63,16 +66,24 @@ def one_k(k: int, forms) -> dict:
             best = min(best, time.perf_counter() - t)
         codes = np.asarray(sol.status)
         statuses = {hj.STATUS_NAMES[c]: int(np.sum(codes == c)) for c in np.unique(codes)}
-        row.update({
-            "modes_built": len(system.built_sets), "modes": system.num_modes,
-            "transitions": system.num_transitions,
-            f"{form}_build_s": build_s, f"{form}_compile_s": compile_s, f"{form}_run_s": best,
-            f"{form}_exec_per_s": N / best, f"{form}_statuses": statuses,
-            f"{form}_mean_events": float(np.mean(np.asarray(sol.num_events))),
-        })
-        print(f"K={k} {form}: {len(system.built_sets)} sets of {2 ** k}, {system.num_transitions} transitions, "
-              f"build {build_s:.1f} s, compile {compile_s:.1f} s, {N / best:.0f} executions/s, {statuses}",
-              flush=True)
+        row.update(
+            {
+                "modes_built": len(system.built_sets),
+                "modes": system.num_modes,
+                "transitions": system.num_transitions,
+                f"{form}_build_s": build_s,
+                f"{form}_compile_s": compile_s,
+                f"{form}_run_s": best,
+                f"{form}_exec_per_s": N / best,
+                f"{form}_statuses": statuses,
+                f"{form}_mean_events": float(np.mean(np.asarray(sol.num_events))),
+            }
+        )
+        print(
+            f"K={k} {form}: {len(system.built_sets)} sets of {2**k}, {system.num_transitions} transitions, "
+            f"build {build_s:.1f} s, compile {compile_s:.1f} s, {N / best:.0f} executions/s, {statuses}",
+            flush=True,
+        )
     return row
 
 
@@ -85,8 +96,16 @@ def main():
     for k in ks:
         # The mask form compiles and runs slower at every K measured (K <= 3): larger K, branch only.
         rows[k] = one_k(k, FORMS if k <= MASK_UP_TO else FORMS[:1])
-        write_json("scenes", {"machine": machine_info(), "n": N, "t1": T1, "forms": FORMS,
-                              "rows": [rows[k] for k in sorted(rows)]})
+        write_json(
+            "scenes",
+            {
+                "machine": machine_info(),
+                "n": N,
+                "t1": T1,
+                "forms": FORMS,
+                "rows": [rows[k] for k in sorted(rows)],
+            },
+        )
 
 
 if __name__ == "__main__":
