@@ -567,7 +567,12 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
             jnp.where(Q.impact_held * uni > 0, P, one),
             jnp.where(Q.released > 0, rates, one),
         ]
-        return eq, jnp.concatenate(ineq)
+        ineq = jnp.concatenate(ineq)
+        # A singular contact system (dependent constraints at a sample) gives non-finite values:
+        # they count as violated, finite, so that no NaN reaches the least-squares solve (whose
+        # SVD can stall on one).
+        eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
+        return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
 
     return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
 
