@@ -536,18 +536,6 @@ class _Query(eqx.Module):
     flowing: Array  # scalar 1: lambda_A >= 0 required (impacts)
 
 
-@jax.custom_jvp
-def _finite_tangents(v):
-    """The identity, with non-finite derivatives set to 0 (the search's Jacobians stay finite)."""
-    return v
-
-
-@_finite_tangents.defjvp
-def _finite_tangents_jvp(primals, tangents):
-    (v,), (dv,) = primals, tangents
-    return _finite_tangents(v), jnp.where(jnp.isfinite(dv), dv, 0.0)
-
-
 @functools.cache
 def _query_functions(scene: Scene, margin: float, least_norm: bool):
     """The equalities and inequalities of every query (cached: later builds of one scene, with
@@ -583,8 +571,8 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         # A singular contact system (dependent constraints at a sample) gives non-finite values:
         # they count as violated, finite, so that no NaN reaches the least-squares solve (whose
         # SVD can stall on one).
-        eq = _finite_tangents(jnp.where(jnp.isfinite(eq), eq, 1e6))
-        return eq, _finite_tangents(jnp.where(jnp.isfinite(ineq), ineq, -1e6))
+        eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
+        return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
 
     return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
 
