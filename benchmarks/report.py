@@ -557,10 +557,68 @@ def scenes(res: dict) -> list[str]:
     return out
 
 
+
+
+def trajopt(res: dict) -> list[str]:
+    out = _page("trajopt", "Trajectory optimisation: hybrid iLQR against gradient descent", res, "trajopt.py",
+                "Hybrid iLQR (`hj.hybrid_ilqr`) and `optax.adam` on `jax.grad` through `simulate` minimise the "
+                "same cost of the same problem: controls constant on the intervals of a time grid, each interval "
+                "one hybrid execution. *ball*: the bouncing ball with a vertical thrust tracks the passive ball "
+                "through its impact from u = 2.5 (optimum u = 0, cost 0). *hopper*: a vertical hopper must reach "
+                "an apex of 1.5 at t = 0.9. *to target*: iterations and wall time (compile excluded) until the "
+                f"cost is below {res['target_fraction']:.0e} of the initial cost. *incomplete iterates*: iterates with "
+                "an interval whose execution stopped before its end (more events than the interval allows, a Zeno "
+                "execution): their cost is not the problem's; hybrid iLQR discards such trial rollouts. See "
+                "[Trajectory optimisation](../trajectory_optimisation.md).")
+    rows = []
+    for pb in res["problems"]:
+        for method, r in pb["methods"].items():
+            its = "not reached" if r["iterations_to_target"] is None else (
+                f"{r['iterations_to_target']} it, {r['seconds_to_target']:.2f} s")
+            rows.append([pb["name"], method, f"{pb['initial_cost']:.3g}", its, f"{r['final_cost']:.2e}",
+                         r["iterations"], f"{r['per_iteration_s'] * 1e3:.0f} ms", r.get("incomplete_iterates", "")])
+    out += _table(["problem", "method", "initial cost", "to target", "final cost", "iterations",
+                   "per iteration", "incomplete iterates"], rows)
+    out += [f"![Cost against iteration]({_plot_trajopt(res)})", ""]
+    return out
+
+
+def _plot_trajopt(res: dict) -> str:
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(res["problems"]), figsize=(10, 3.6))
+    for ax, pb in zip(axes, res["problems"], strict=True):
+        for method, r in pb["methods"].items():
+            ax.semilogy([max(c, 1e-32) for c in r["costs"]], label=method)
+        ax.axhline(res["target_fraction"] * pb["initial_cost"], color="gray", lw=0.8, ls=":")
+        ax.set(title=pb["name"], xlabel="iteration", ylabel="cost")
+        ax.set_xscale("symlog", linthresh=10)
+        ax.set_xlim(left=0)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    return _save(fig, "trajopt.png")
+
+
 PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": block_size,
          "guard_cost": guard_cost, "gradient_cost": gradient_cost, "compile_time": compile_time,
          "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits,
-         "derivative_accuracy": derivative_accuracy, "first_call": first_call, "scenes": scenes}
+         "derivative_accuracy": derivative_accuracy, "first_call": first_call,
+         "trajopt": trajopt, "scenes": scenes}
+
+
+def property_checks(res: dict) -> list[str]:
+    out = _page("property_checks", "Property checks, timed", res, "property_checks.py",
+                "Wall time of `hj.check_properties` (see [Property checks](../property_checks.md)): the first "
+                "call traces and compiles the batched searches of the system; later calls, with new values in "
+                "`args`, reuse them. Rings of M modes: mode i has x' = 1 on x <= 1 and one transition to mode "
+                "i + 1 with guard 1 - x and reset x -> 0. Every check is verified against its expected verdicts "
+                "before it is timed.")
+    body = [[r["system"], r["modes"], r["transitions"], r["samples_per_mode"], f"{r['first_call_s']:.1f} s",
+             f"{r['later_call_s']:.3f} s"] for r in res["rows"]]
+    out += _table(["system", "modes", "transitions", "samples per mode", "first call", "later calls"], body)
+    return out
+
+
+PAGES["property_checks"] = property_checks
 
 
 def main():

@@ -6,9 +6,16 @@ execution of it (vmap it for thousands) and returns a `Solution`.
 """
 
 from . import examples as examples
+from ._ilqr import HybridILQRResult as HybridILQRResult
+from ._ilqr import HybridLQRProblem as HybridLQRProblem
+from ._ilqr import hybrid_ilqr as hybrid_ilqr
 from ._montecarlo import MonteCarloResult as MonteCarloResult
 from ._montecarlo import monte_carlo as monte_carlo
 from ._montecarlo import wilson_interval as wilson_interval
+from ._multiple_shooting import EpochGuess as EpochGuess
+from ._multiple_shooting import MultipleShooting as MultipleShooting
+from ._multiple_shooting import MultipleShootingResult as MultipleShootingResult
+from ._multiple_shooting import multiple_shooting as multiple_shooting
 from ._periodic import PeriodicOrbit as PeriodicOrbit
 from ._periodic import periodic_orbit as periodic_orbit
 from ._presets import PRESET_NAMES as PRESET_NAMES
@@ -18,13 +25,19 @@ from ._scene import ContactSystem as ContactSystem
 from ._scene import Relabel as Relabel
 from ._scene import Scene as Scene
 from ._scene import contact_system as contact_system
+from ._properties import PropertyReport as PropertyReport
+from ._properties import check_properties as check_properties
+from ._saltation import VariationalJacobian as VariationalJacobian
+from ._saltation import saltation_matrix as saltation_matrix
+from ._saltation import variational_jacobian as variational_jacobian
 from ._search import Witness as Witness
 from ._search import box_samples as box_samples
 from ._search import constraint_violation as constraint_violation
 from ._search import find_point as find_point
-from ._saltation import VariationalJacobian as VariationalJacobian
-from ._saltation import saltation_matrix as saltation_matrix
-from ._saltation import variational_jacobian as variational_jacobian
+from ._shooting import Shooting as Shooting
+from ._shooting import ShootingResult as ShootingResult
+from ._shooting import shoot as shoot
+from ._shooting import with_running_cost as with_running_cost
 from ._simulate import simulate as simulate
 from ._simulate_batch import simulate_batch as simulate_batch
 from ._solution import Epoch as Epoch
@@ -38,3 +51,4 @@ from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
+from ._zeno import ZenoOptions as ZenoOptions

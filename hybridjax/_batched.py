@@ -25,7 +25,7 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   values and takes the next execution not yet started (`refill_stage`), so the batch stays
   full while executions of different lengths finish.
 
-The per-lane pieces (`_events`, `Kernels`, diffrax's interpolation and initial step) are the
+The rules (`_rules`), the per-lane pieces (`Kernels`, diffrax's interpolation and initial step) are the
 ones `Loop` uses, so both engines make the same decisions; `tests/test_engines.py` holds them
 to each other. The dense output at the guard samples uses weights w(theta) with
 y(theta) = a y0 + b y1 + sum_i c_i k_i, read off diffrax's own interpolation (it is linear in
@@ -33,6 +33,7 @@ y0, y1, k) once at trace time.
 """
 
 import functools
+from typing import NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -43,23 +44,40 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
-from ._events import (
-    carries_step,
-    departure_step_bound,
-    first_step,
-    locate_minimum,
-    locate_root,
-    nonfinite_step,
-    start_decision,
-    step_collapsed,
-    strictly_inside,
+from ._fast_rk import (
+    PIDState,
+    explicit_rk_step,
+    has_history,
+    pid_controller,
+    rk_error_estimate,
+    scaled_error,
+    weighted_sum,
 )
 from ._fast_rk import fold as _fold
-from ._fast_rk import inverse_root, weighted_sum
 from ._kernels import Kernels, mask_inputs
-from ._loop import event_point
+from ._rules import (
+    Detection,
+    EpochStart,
+    blocks,
+    carries_step,
+    dip_filter,
+    dip_interval,
+    epoch_start,
+    event_brackets,
+    event_point,
+    event_time_tol,
+    first_event,
+    jump_outcome,
+    nonfinite_step,
+    push_recent,
+    saved_in_step,
+    step_end,
+    step_stops,
+    stop_first,
+    zeno_completion,
+)
 from ._status import Status
-from ._zeno import detect_zeno
+from ._zeno import ZenoOptions, detect_zeno
 
 sg = lax.stop_gradient
 
@@ -75,7 +93,7 @@ class Lanes(eqx.Module):
     at_start: jax.Array
     done: jax.Array
     status: jax.Array  # (N,) int32: `Status` codes
-    g_prev: jax.Array  # (S, N): the watched functions' values, by slot (`Kernels.to_slots`)
+    g_prev_slots: jax.Array  # (S, N): `LoopState.g_prev`, by slot (`Kernels.to_slots`)
     num_events: jax.Array
     zero_run: jax.Array
     num_steps: jax.Array
@@ -84,6 +102,9 @@ class Lanes(eqx.Module):
     zeno_state: jax.Array  # (n, N)
     recent_times: jax.Array  # (R, N)
     recent_states: jax.Array  # (3, n, N)
+    inv_error: jax.Array  # (N,) the step-size rule's history (`PIDState`; unused by an I controller)
+    prev_inv_error: jax.Array
+    at_dtmin: jax.Array
     save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
     t1: jax.Array  # (N,): the end time of each lane's execution
     exec_id: jax.Array  # (N,) int32: the execution each lane runs (num_executions: none)
@@ -149,18 +170,10 @@ class LaneRecord(eqx.Module):
         return out
 
 
-def _stop(st: Lanes, pred, status: Status) -> Lanes:
-    """`st` with the running lanes where `pred` holds stopped with `status`."""
-    return _stop_first(st, (pred, status))
-
-
-def _stop_first(st: Lanes, *rules: tuple) -> Lanes:
-    """`_stop` for several (pred, status) rules in order (the first that holds wins), in one
-    update of `done` and `status`: each update is a pass over every lane."""
-    done, code = st.done, st.status
-    for pred, status in rules:
-        pred = pred & ~done
-        done, code = done | pred, jnp.where(pred, status._value, code)
+def _stop(st: Lanes, *rules: tuple) -> Lanes:
+    """`st` with its running lanes stopped by the first of the rules `(pred, Status)` that holds
+    (`stop_first`), in one update of `done` and `status`: each update is a pass over every lane."""
+    done, code = stop_first(st.done, st.status, *rules)
     return eqx.tree_at(lambda s: (s.done, s.status), st, (done, code))
 
 
@@ -251,28 +264,17 @@ def _computed_once(fn, operands, pred):
     return lax.cond(pred, fn, lambda ops: jtu.tree_map(jnp.zeros_like, jax.eval_shape(fn, ops)), operands)
 
 
-def _dip_interval(V0, V1, D0, D1, h):
-    """A dip test on one sample interval of length h: the cubic Hermite model of g from values
-    V and slopes D at its ends. Returns (crossing, dip candidate, u): u the offset of the
-    model's estimated minimum, where g dips <= 0 without a sign change at the ends."""
-    D0 = jnp.where(jnp.isfinite(D0), D0, 0.0)
-    D1 = jnp.where(jnp.isfinite(D1), D1, 0.0)
-    shape = (V0 > 0) & (V1 > 0) & (D0 < 0) & (D1 > 0)
-    den = jnp.where(shape, D0 - D1, -1.0)
-    u = jnp.clip((V1 - V0 - D1 * h) / den, 0.0, h)
-    return (V1 <= 0) & (V0 > 0), shape & (V0 + D0 * u <= 0), u
-
-
-def _detect(g_prev, G_e, D_e, times, pred):
-    """`first_crossings` and `dip_candidates` of `_events`, lanes last, the sample axis unrolled.
+def _detect(g_prev, G_e, D_e, times, pred) -> Detection:
+    """`first_crossings` and `dip_candidates` of `_rules`, lanes last, the sample axis unrolled
+    (`dip_interval` on each interval).
 
     `G_e`, `D_e`: guard values and slopes at the step's start, interior points and end (lists
     of (S, N), S the watched functions' slots); `times` the sample times ((N,) each); `pred` as
-    `_materialize`'s. Returns (has, j, suspect, i_d, x0_d), (S, N).
+    `_materialize`'s. Returns the `Detection`, each field (S, N).
     """
     V = [g_prev, *G_e[1:]]
     m = len(V) - 1
-    parts = [_dip_interval(V[i], V[i + 1], D_e[i], D_e[i + 1], times[i + 1] - times[i]) for i in range(m)]
+    parts = [dip_interval(V[i], V[i + 1], D_e[i], D_e[i + 1], times[i + 1] - times[i]) for i in range(m)]
     # Per interval, computed once; the first crossing and the first dip candidate from them.
     cross, cand = _materialize(([p[0] for p in parts], [p[1] for p in parts]), pred)
     has = jnp.zeros(g_prev.shape, bool)
@@ -295,9 +297,9 @@ def _detect(g_prev, G_e, D_e, times, pred):
         return out
 
     t0 = pick(times[:m])
-    _, _, u = _dip_interval(pick(V[:m]), pick(V[1:]), pick(D_e[:m]), pick(D_e[1:]), pick(times[1:]) - t0)
+    _, _, u = dip_interval(pick(V[:m]), pick(V[1:]), pick(D_e[:m]), pick(D_e[1:]), pick(times[1:]) - t0)
     x0_d = jnp.where(suspect, t0 + u, times[0])
-    return has, j, suspect, i_d, x0_d
+    return Detection(has, j, suspect, i_d, x0_d)
 
 
 def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
@@ -320,16 +322,16 @@ _THETA_PAD = 16
 @functools.lru_cache(maxsize=64)
 def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str):
     m = len(thetas)
-    dt = jnp.dtype(dtype)
-    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dt)
+    dtype = jnp.dtype(dtype)
+    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dtype)
     th[:m] = thetas
-    eye = np.eye(2 + num_stages, dtype=dt)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
+    eye = np.eye(2 + num_stages, dtype=dtype)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
     basis = (th, eye[:, :1], eye[:, 1:2], eye[:, 2:, None])
     both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(*basis)
     out = []
-    for W in both:
-        W = np.asarray(W)[:m, :, 0]  # (thetas, basis)
-        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in W])
+    for weights in both:
+        weights = np.asarray(weights)[:m, :, 0]  # (thetas, basis)
+        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in weights])
     return out
 
 
@@ -350,9 +352,9 @@ def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype
     def slope(th, y0, y1, k):
         return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
 
-    dt = jnp.dtype(dtype)
+    dtype = jnp.dtype(dtype)
     B = 2 + num_stages
-    shapes = [jax.ShapeDtypeStruct(shape, dt)
+    shapes = [jax.ShapeDtypeStruct(shape, dtype)
               for shape in ((num_thetas,), (B, 1), (B, 1), (B, num_stages, 1))]
     return jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
                                             in_axes=(0, None, None, None))(th, *b)
@@ -372,9 +374,9 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     per degree up to the interpolant's own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
     value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
-    W = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
+    V = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
     T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
-    A = (2.0 / (degree + 1)) * T @ W
+    A = (2.0 / (degree + 1)) * T @ V
     A[0] /= 2
     # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
     # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
@@ -408,6 +410,39 @@ class ChebyshevDense(eqx.Module):
         return x * b1 - b2 + self.coeffs[0]
 
 
+class LaneStart(NamedTuple):
+    """A lane's epoch-start test (`g_start` by slot) and the reset of the transition that fires
+    at once, if one does."""
+
+    start: EpochStart
+    y_after: jax.Array
+
+
+class LaneStep(NamedTuple):
+    """One lane's step: from (t, y) to (t_next, y1), with the stages' increments ks."""
+
+    t: jax.Array
+    t_next: jax.Array
+    y: jax.Array
+    y1: jax.Array
+    ks: list
+
+
+class StepEvent(NamedTuple):
+    """One lane's first event in its step (`BatchedLoop._event_lane`), and the start test of the
+    epoch after it (`next`)."""
+
+    event: jax.Array  # the lane has an event in the step
+    k: jax.Array  # the watched function (a guard if < K; a domain component: `blocks`)
+    t_star: jax.Array  # the located time
+    t_ev: jax.Array  # the same, differentiable (`event_point`)
+    y_before: jax.Array
+    y_after: jax.Array
+    simultaneous: jax.Array
+    grazing: jax.Array
+    next: EpochStart
+
+
 class BatchedLoop:
     """The loop for the executions of one system; `run(t0, y0, mode0)` with lanes-last inputs.
 
@@ -418,7 +453,7 @@ class BatchedLoop:
 
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
-                 zeno: dict | None, loop_kind: str, checkpoints, dtype, lanes: int,
+                 zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
                  block: int | tuple | None = None, save_ts=None):
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
@@ -431,7 +466,7 @@ class BatchedLoop:
         self.max_epochs, self.max_steps = max_epochs, max_steps
         self.interior_points, self.event_tol = interior_points, event_tol
         self.max_zero_epochs, self.zeno = max_zero_epochs, zeno
-        self.recent = (zeno["window"] + 2) if zeno is not None else 2
+        self.recent = (zeno.window + 2) if zeno is not None else 2
         self.loop_kind, self.checkpoints, self.dtype = loop_kind, checkpoints, dtype
         self.eps = jnp.finfo(dtype).eps
         self.N = lanes
@@ -455,10 +490,6 @@ class BatchedLoop:
         self.cheb = chebyshev_weights(solver.interpolation_cls, self.num_stages, dtype)
 
     # ------------------------------------------------------------------ helpers
-    def time_tol(self, t, h):
-        """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
-        return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
-
     def lane_args(self, st: Lanes, idx=None):
         """The args of the executions on lanes `idx` (default: all lanes), leading axis theirs."""
         if self.args_axis is None:
@@ -547,26 +578,29 @@ class BatchedLoop:
         """Lanes at the start of executions `ids` (clipped to the last one)."""
         t0, y0, mode0 = self.inputs
         t0, y0, mode0, t1 = (jnp.take(a, ids, axis=-1, mode="clip") for a in (t0, y0, mode0, self.t1))
-        N, n, W, dt = ids.shape[0], self.kern.n, self.kern.num_slots, self.dtype
+        N, n, S, dtype = ids.shape[0], self.kern.n, self.kern.num_slots, self.dtype
         return Lanes(
-            t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dt), f0=jnp.zeros((n, N), dt),
+            t=t0, y=y0, mode=mode0, h=jnp.zeros((N,), dtype), f0=jnp.zeros((n, N), dtype),
             at_start=jnp.ones((N,), bool), done=jnp.zeros((N,), bool),
             status=jnp.full((N,), Status.T1_REACHED._value, jnp.int32),
-            g_prev=jnp.zeros((W, N), dt), num_events=jnp.zeros((N,), jnp.int32),
+            g_prev_slots=jnp.zeros((S, N), dtype), num_events=jnp.zeros((N,), jnp.int32),
             zero_run=jnp.zeros((N,), jnp.int32), num_steps=jnp.zeros((N,), jnp.int32),
-            num_rejected=jnp.zeros((N,), jnp.int32), zeno_time=jnp.full((N,), jnp.inf, dt),
-            zeno_state=jnp.full((n, N), jnp.inf, dt), recent_times=jnp.full((self.recent, N), jnp.inf, dt),
-            recent_states=jnp.full((3, n, N), jnp.inf, dt),
+            num_rejected=jnp.zeros((N,), jnp.int32), zeno_time=jnp.full((N,), jnp.inf, dtype),
+            zeno_state=jnp.full((n, N), jnp.inf, dtype),
+            recent_times=jnp.full((self.recent, N), jnp.inf, dtype),
+            recent_states=jnp.full((3, n, N), jnp.inf, dtype),
+            inv_error=jnp.ones((N,), dtype), prev_inv_error=jnp.ones((N,), dtype),
+            at_dtmin=jnp.zeros((N,), bool),
             save_ptr=jnp.searchsorted(self.save_sorted, t0, side="right").astype(jnp.int32),
             t1=t1, exec_id=ids.astype(jnp.int32), next_exec=jnp.asarray(next_exec, jnp.int32),
         )
 
     def init(self, t0, y0, mode0) -> tuple[Lanes, LaneRecord]:
         self.inputs = (t0, y0, mode0)
-        N, n, E, dt = self.num_exec, self.kern.n, self.max_epochs, self.dtype
+        N, n, E, dtype = self.num_exec, self.kern.n, self.max_epochs, self.dtype
         st = self.fresh(jnp.arange(self.N), self.N)
         at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
-        ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dt)
+        ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dtype)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
         # One more row (execution N) and at least one column: events not kept are written
         # there, not dropped out of bounds (a loop buffer's reverse pass reads every written
@@ -576,15 +610,16 @@ class BatchedLoop:
         if self.refill:
             # Every execution MAX_STEPS until its lane hands it in, plus entry N where lanes
             # without an execution write; no gradient, as each entry is overwritten once.
-            unrun = _stop(self.fresh(jnp.arange(N + 1), N), jnp.ones((N + 1,), bool), Status.MAX_STEPS)
+            unrun = _stop(self.fresh(jnp.arange(N + 1), N), (jnp.ones((N + 1,), bool), Status.MAX_STEPS))
             finals = sg(Finals.of(unrun))
         rec = LaneRecord(
-            event_times=jnp.full((N + 1, E1), jnp.inf, dt), transitions=jnp.full((N + 1, E1), -1, jnp.int32),
+            event_times=jnp.full((N + 1, E1), jnp.inf, dtype),
+            transitions=jnp.full((N + 1, E1), -1, jnp.int32),
             epoch_modes=jnp.full((N + 1, E1 + 1), -1, jnp.int32).at[:N, 0].set(mode0),
             simultaneous=jnp.zeros((N + 1, E1), bool), grazing=jnp.zeros((N + 1, E1), bool),
             inside_guard=jnp.zeros((N + 1, E1), bool),
-            states_before=jnp.full((N + 1, E1, n), jnp.inf, dt),
-            states_after=jnp.full((N + 1, E1, n), jnp.inf, dt),
+            states_before=jnp.full((N + 1, E1, n), jnp.inf, dtype),
+            states_after=jnp.full((N + 1, E1, n), jnp.inf, dtype),
             ys=ys, saved_modes=saved_modes, finals=finals)
         return st, rec
 
@@ -614,22 +649,15 @@ class BatchedLoop:
         return lax.cond(jnp.any(ended), run, lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ jump
-    def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool, inside=None):
-        """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
-        the caller); then stop on too many epochs, non-finite values, chattering or Zeno.
-        `st` is the block of lanes (`on_block`) the jumps can happen on: the record is written
-        from those alone."""
-        E = self.max_epochs
-        K = self.kern.num_transitions
-        full = st.num_events >= E
-        kept = mask & ~full
-        finite = _rows_all(jnp.isfinite(y_after))
-        jumped = kept & finite
-        target = self.kern.targets[jnp.clip(k, 0, K - 1)]
+    def record(self, st: Lanes, rec: LaneRecord, kept, k, t_ev, target, y_before, y_after,
+               simultaneous=None, grazing=None, inside=None) -> LaneRecord:
+        """`rec` with event k at t_ev written as the next event (`num_events`) of the lanes in
+        `kept` (the others write to the row not returned). `st` is the block of lanes
+        (`on_block`) the events can happen on: the record is written from those alone."""
         row = jnp.where(kept, st.num_events, 0)
         # num_exec: the row not returned (lanes without a kept event, a block's spare slots).
         ids = jnp.where(kept, st.exec_id, self.num_exec)
+        no = jnp.zeros_like(kept)
 
         def put(a, v, col=row):
             return a.at[ids, col].set(v.astype(a.dtype))
@@ -637,73 +665,99 @@ class BatchedLoop:
         def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
             return a.at[ids, row].set(v.T.astype(a.dtype))
 
-        inside = jnp.zeros_like(grazing) if inside is None else inside
-        rec = eqx.tree_at(
+        return eqx.tree_at(
             lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
                        r.inside_guard, r.states_before, r.states_after), rec,
             (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
-             put(rec.simultaneous, simultaneous), put(rec.grazing, grazing), put(rec.inside_guard, inside),
+             put(rec.simultaneous, no if simultaneous is None else simultaneous),
+             put(rec.grazing, no if grazing is None else grazing),
+             put(rec.inside_guard, no if inside is None else inside),
              put_state(rec.states_before, y_before), put_state(rec.states_after, y_after)))
-        recent_times = jnp.where(kept, jnp.concatenate([st.recent_times[1:], t_ev[None]]), st.recent_times)
-        recent_states = jnp.where(kept, jnp.concatenate([st.recent_states[1:], y_after[None]]),
-                                  st.recent_states)
-        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
-        st = eqx.tree_at(
+
+    def begin_epoch(self, st: Lanes, mask, kept, t, y, mode, zero_run) -> Lanes:
+        """The lanes in `mask` at the start of an epoch at (t, y) in `mode`, after an event
+        (recorded where `kept`)."""
+        return eqx.tree_at(
             lambda s: (s.t, s.y, s.mode, s.at_start, s.zero_run, s.num_events, s.recent_times,
                        s.recent_states),
             st,
-            (jnp.where(mask, t_ev, st.t),
-             jnp.where(jumped, y_after, jnp.where(mask, y_before, st.y)),
-             jnp.where(jumped, target, st.mode),
-             st.at_start | jumped,
-             jnp.where(jumped, zero_run, st.zero_run),
+            (jnp.where(mask, t, st.t), jnp.where(mask, y, st.y), jnp.where(mask, mode, st.mode),
+             st.at_start | mask, jnp.where(mask, zero_run, st.zero_run),
              st.num_events + kept.astype(jnp.int32),
-             recent_times, recent_states),
+             jnp.where(kept, push_recent(st.recent_times, t), st.recent_times),
+             jnp.where(kept, push_recent(st.recent_states, y), st.recent_states)),
         )
-        st = _stop(st, mask & full, Status.MAX_EPOCHS)
-        st = _stop(st, kept & ~finite, Status.NONFINITE)
-        st = _stop(st, jumped & (st.zero_run > self.max_zero_epochs), Status.CHATTERING)
+
+    def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
+             grazing, zero_length: bool, args, inside=None):
+        """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
+        the caller); then stop on too many epochs, non-finite values, chattering or Zeno, or
+        complete a Zeno execution (`zeno_completion`). `st` is the block of lanes (`on_block`)
+        the jumps can happen on, `args` theirs. Also returns the lanes that completed."""
+        K = self.kern.num_transitions
+        out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
+                           self.max_zero_epochs)
+        kept, jumped = mask & out.recorded, mask & out.applied
+        target = self.kern.targets[jnp.clip(k, 0, K - 1)]
+        rec = self.record(st, rec, kept, k, t_ev, target, y_before, y_after, simultaneous, grazing, inside)
+        # Where the reset is not applied (not finite), the execution ends at the pre-event state.
+        st = self.begin_epoch(st, jumped, kept, t_ev, y_after, target, out.zero_run)
+        st = eqx.tree_at(lambda s: (s.t, s.y), st,
+                         (jnp.where(mask, t_ev, st.t), jnp.where(mask & ~jumped, y_before, st.y)))
+        st = _stop(st, *((mask & pred, status) for pred, status in out.stops))
+        completed = jnp.zeros_like(mask)
         if self.zeno is not None:
             is_zeno, t_inf, x_inf = jax.vmap(
-                lambda T, X, t1: detect_zeno(T, X, t1, **self.zeno), in_axes=-1, out_axes=-1
+                lambda T, X, t1: detect_zeno(T, X, t1, self.zeno), in_axes=-1, out_axes=-1
             )(st.recent_times, st.recent_states, st.t1)
             z = jumped & is_zeno & ~st.done
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
-            st = _stop(st, z, Status.ZENO)
-        return st, rec
+            if self.system.completions:
+                comp = self.lane_map(lambda m, zz, tt, xx, a: zeno_completion(self.kern, m, zz, tt, xx, a),
+                                     st.mode, z, t_inf, x_inf, args=args)
+                completed = comp.completes
+                full = st.num_events >= self.max_epochs
+                rec = self.record(st, rec, completed & ~full, comp.index, comp.t, comp.target, comp.x,
+                                  comp.y_after)
+                st = self.begin_epoch(st, completed, completed & ~full, comp.t, comp.y_after, comp.target, 0)
+                st = _stop(st, (completed & full, Status.MAX_EPOCHS))
+            st = _stop(st, (z & ~completed, Status.ZENO))
+        return st, rec, completed
 
     # ------------------------------------------------------------------ start of an epoch
-    def _start_lane(self, t, y, mode, h_prev, t1, args, after_step: bool = False):
-        """One lane's epoch-start test (as `Loop.start_stage`). `after_step`: the epoch follows
-        an accepted step, whose proposal `h_prev` (> 0) starts it unless the user gave `dt0`
-        (`first_step`), so Hairer's initial step is not computed."""
+    def _start_lane(self, t, y, mode, h_prev, t1, args, after_step: bool = False) -> "LaneStart":
+        """One lane's epoch-start test (`epoch_start`), its g_start by slot, and the reset of
+        the transition that fires at once. `after_step`: the epoch follows an accepted step,
+        whose proposal `h_prev` (> 0) starts it unless the user gave `dt0` (`first_step`), so
+        Hairer's initial step is not computed."""
         kern, K = self.kern, self.kern.num_transitions
-        ts, ys, a_sg = sg(t), sg(y), sg(args)
-        jets = kern.guard_jets(mode, ts, ys, a_sg, self.rtol, self.atol, self.time_tol(ts, h_prev))
-        outgoing = kern.outgoing_mask(mode)
-        fire, g_start = start_decision(jets, outgoing, self.eps)
-        F = kern.flow(mode, t, y, args)  # with gradients: the next step's first stage
-        finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets["L0"], 0.0)))
-        k = jnp.argmax(fire).astype(jnp.int32) if kern.num_watch else jnp.array(0, jnp.int32)
         if after_step and self.carry_step:
-            first = h_prev
+            initial = h_prev
         else:
-            t_init, _ = self.controller.init(self.terms, ts, t1, ys, self.dt0, (mode, a_sg),
+            t_init, _ = self.controller.init(self.terms, sg(t), t1, sg(y), self.dt0, (mode, sg(args)),
                                              self.solver.func, self.error_order)
-            first = first_step(t_init - ts, h_prev, self.carry_step)
-        dt = jnp.minimum(first, departure_step_bound(jets, outgoing, fire))
-        any_fire = jnp.any(fire)
+            initial = t_init - sg(t)
+        start = epoch_start(kern, mode, t, y, args, h_prev, initial, carry=self.carry_step, rtol=self.rtol,
+                            atol=self.atol, event_tol=self.event_tol, eps=self.eps)
         if K:
-            t_m, y_m, a_m = mask_inputs(any_fire & (k < K), (t, y, args))
-            y_after = kern.reset(jnp.minimum(k, K - 1), t_m, y_m, a_m)
-            simultaneous = jnp.sum(fire[:K]) > 1
+            t_m, y_m, a_m = mask_inputs(start.fire & ~blocks(start.k, K), (t, y, args))
+            y_after = kern.reset(jnp.minimum(start.k, K - 1), t_m, y_m, a_m)
         else:
-            y_after, simultaneous = y, jnp.array(False)
-        inside = strictly_inside(jets)[k] if kern.num_watch else jnp.array(False)
-        return dict(fire=any_fire, k=k, g_start=kern.to_slots(mode, g_start.astype(self.dtype)), F=F,
-                    finite=finite, dt=sg(dt).astype(self.dtype), y_after=y_after, simultaneous=simultaneous,
-                    inside=inside)
+            y_after = y
+        start = start._replace(g_start=kern.to_slots(mode, start.g_start.astype(self.dtype)),
+                               h=start.h.astype(self.dtype))
+        return LaneStart(start, y_after)
+
+    def restart_step_rule(self, st: Lanes, mask) -> Lanes:
+        """The lanes in `mask` with the step-size rule's history of a new epoch (diffrax's
+        `PIDController.init`: 1, 1, not at dtmin), as the per-execution engine restarts its
+        controller at each epoch."""
+        if not has_history(self.controller):
+            return st
+        return eqx.tree_at(lambda s: (s.inv_error, s.prev_inv_error, s.at_dtmin), st,
+                           (jnp.where(mask, 1.0, st.inv_error), jnp.where(mask, 1.0, st.prev_inv_error),
+                            st.at_dtmin & ~mask))
 
     def start_stage(self, st: Lanes, rec: LaneRecord):
         active = st.at_start & ~st.done
@@ -712,128 +766,92 @@ class BatchedLoop:
             st_all, rec = carry
             st = b0 = _gather_lanes(st_all, idx)
             active_now = self.in_block(idx, active)
-            out = self.lane_map(self._start_lane, st.t, st.y, st.mode, st.h, st.t1,
-                                args=self.lane_args(st_all, idx))
-            out = _materialize(out, jnp.any(active))
-            fire = active_now & out["fire"]
+            start, y_after = self.lane_map(self._start_lane, st.t, st.y, st.mode, st.h, st.t1,
+                                           args=self.lane_args(st_all, idx))
+            start, y_after = _materialize((start, y_after), jnp.any(active))
+            fire = active_now & start.fire
             K = self.kern.num_transitions
-            go = active_now & ~out["fire"]
+            go = active_now & ~start.fire
             st = eqx.tree_at(
-                lambda s: (s.at_start, s.g_prev, s.h, s.f0), st,
-                (st.at_start & ~go, jnp.where(go, out["g_start"], st.g_prev),
-                 jnp.where(go, out["dt"], st.h), jnp.where(go, out["F"], st.f0)))
-            st = _stop(st, go & (st.t >= st.t1), Status.T1_REACHED)
-            st = _stop(st, fire & (out["k"] >= K), Status.BLOCKED)
+                lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), st,
+                (st.at_start & ~go, jnp.where(go, start.g_start, st.g_prev_slots),
+                 jnp.where(go, start.h, st.h), jnp.where(go, start.F, st.f0)))
+            st = self.restart_step_rule(st, go)
+            st = _stop(st, (go & (st.t >= st.t1), Status.T1_REACHED))
+            st = _stop(st, (fire & blocks(start.k, K), Status.BLOCKED))
             if K:
-                st, rec = self.jump(st, rec, fire & (out["k"] < K), out["k"], st.t, st.y, out["y_after"],
-                                    out["simultaneous"], jnp.zeros_like(fire), zero_length=True,
-                                    inside=out["inside"])
-            st = _stop(st, active_now & ~out["finite"], Status.NONFINITE)
+                st, rec, _ = self.jump(st, rec, fire & ~blocks(start.k, K), start.k, st.t, st.y, y_after,
+                                       start.simultaneous, jnp.zeros_like(fire), zero_length=True,
+                                       args=self.lane_args(st_all, idx), inside=start.inside)
+            st = _stop(st, (active_now & ~start.finite, Status.NONFINITE))
             return _scatter_lanes(st_all, b0, st, idx), rec
 
         return lax.cond(jnp.any(active), lambda c: self.on_block(active, run, c), lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ one step
-    def _event_lane(self, t, t_next, y, y1, ks, mode, has, j, suspect, i_d, x0_d, s_ext, h_new, t1,
-                    args):
-        """One lane's first event in its step (as `Loop.step_stage`): dips, root, IFT point,
-        reset; then the next epoch's start test (`_start_lane`) on the reset state, so that the
-        common case (no guard fires at once) needs no separate start stage."""
-        kern, K, S = self.kern, self.kern.num_transitions, self.kern.num_slots
+    def _event_lane(self, step: "LaneStep", det: Detection, mode, s_ext, h_new, t1, args) -> "StepEvent":
+        """One lane's first event in its step (as `Loop.step_stage`): dips and root
+        (`event_brackets`, `first_event`), IFT point (`event_point`), reset; then the next
+        epoch's start test (`_start_lane`) on the reset state, so that the common case (no guard
+        fires at once) needs no separate start stage."""
+        kern, K = self.kern, self.kern.num_transitions
+        t, t_next, y, y1, ks = step
         s_ext = jnp.stack(s_ext)
         # The search runs on the step's slots, `mode`'s own watched functions (`slot_guards`;
         # unused slots read 1 and never fire); the event's function is mapped back at the end.
         interp_sg = ChebyshevDense.from_stages(self.cheb, sg(t), sg(t_next), sg(y), sg(y1), sg(ks))
         a_sg = sg(args)
-        s = s_ext[1:]
-        tol = self.time_tol(sg(t_next), sg(t_next - t))
+        tol = event_time_tol(self.event_tol, sg(t_next), sg(t_next - t), self.eps)
 
-        def path(k):
-            return lambda x: kern.slot_guards(mode, x, interp_sg.evaluate(x), a_sg)[k]
+        def values_at(x):
+            return kern.slot_guards(mode, x, interp_sg.evaluate(x), a_sg)
 
-        def refine(_):
-            return jax.vmap(lambda k, a, b, x: locate_minimum(path(k), a, b, x, tol))(
-                jnp.arange(S), s_ext[i_d], s_ext[i_d + 1], x0_d)
-
-        x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine,
-                                lambda _: (x0_d, jnp.ones_like(x0_d)), None)
-        dip = suspect & (g_min < 0)
-        a_all = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
-        b_all = jnp.where(dip, x_min, s[j])
-        has = has | dip
-        any_event = jnp.any(has)
-
-        def locate(_):
-            tk = jax.vmap(lambda k, a, b: locate_root(path(k), a, b, tol))(jnp.arange(S), a_all, b_all)
-            tk = jnp.where(has, tk, jnp.inf)
-            first = jnp.argmin(tk)
-            t_min = tk[first]
-            t_at = jnp.where(any_event, t_min, b_all[first])
-            g_at = kern.slot_guards(mode, t_at, interp_sg.evaluate(t_at), a_sg)
-            g_from = kern.slot_guards(mode, a_all[first], interp_sg.evaluate(a_all[first]), a_sg)
-            cand = has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & any_event)
-            slot = jnp.argmax(cand)
-            tk = jnp.where(cand & ~has, t_min, tk)
-            k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
-            return jnp.where(any_event, tk[slot], sg(t_next)), k, jnp.sum(cand) > 1
-
-        t_star, k, simultaneous = lax.cond(
-            eqxi.unvmap_any(any_event), locate,
-            lambda _: (sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)), None)
+        br = event_brackets(values_at, det, s_ext, tol)
+        any_event = jnp.any(br.has)
+        t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next))
+        k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
         ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
         interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)
         t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e)
         if K:
-            t_r, y_r, a_r = mask_inputs(any_event & (k < K), (t_ev, y_before, args))
+            t_r, y_r, a_r = mask_inputs(any_event & ~blocks(k, K), (t_ev, y_before, args))
             y_after = kern.reset(jnp.minimum(k, K - 1), t_r, y_r, a_r)
         else:
             y_after = y_before
         target = kern.targets[jnp.clip(k, 0, max(K - 1, 0))] if K else mode
-        nxt = self._start_lane(t_ev, y_after, target, h_new, t1, args, after_step=True)
-        return dict(event=any_event, k=k, t_star=t_star, t_ev=t_ev, y_before=y_before, y_after=y_after,
-                    simultaneous=simultaneous, grazing=grazing, next_fire=nxt["fire"],
-                    next_finite=nxt["finite"], next_g=nxt["g_start"], next_dt=nxt["dt"], next_F=nxt["F"])
+        nxt, _ = self._start_lane(t_ev, y_after, target, h_new, t1, args, after_step=True)
+        return StepEvent(event=any_event, k=k, t_star=t_star, t_ev=t_ev, y_before=y_before, y_after=y_after,
+                         simultaneous=simultaneous, grazing=grazing, next=nxt)
 
     def step_stage(self, st: Lanes, rec: LaneRecord):
         kern, solver, c = self.kern, self.solver, self.controller
-        W, K = kern.num_watch, kern.num_transitions
+        num_watch, K = kern.num_watch, kern.num_transitions
         stepping = ~st.done & ~st.at_start
         # Lanes that do not step still compute one; their inputs get no gradient (double where).
         t, y, f0 = mask_inputs(stepping, (st.t, st.y, st.f0))
         args = self.lane_args(st)
-        t_next = jnp.minimum(jnp.maximum(t + st.h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), st.t1)
+        t_next = step_end(t, st.h, st.t1)
         hh = t_next - t
         if not solver.fsal:
             f0 = self.flows(st.mode, t, y, args)
-        ks, z, f_last = [f0 * hh], y, f0
         # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i apart,
         # XLA computes each stage twice, in two fusions.
-        last = len(solver.c) - 1
-        for i, (c_i, a_i) in enumerate(zip(solver.c, solver.a, strict=True)):
-            z = y + weighted_sum(a_i, ks, y)
-            if i < last:
-                ks.append(self.flows(st.mode, t + c_i * hh, z, args, scale=hh))
-            else:
-                f_last = self.flows(st.mode, t + c_i * hh, z, args)
-                ks.append(f_last * hh)
-        y1 = z if solver.ssal else y + weighted_sum(solver.b_sol, ks, y)
-        # The I controller of `FastIController`, per lane.
-        order = c._get_error_order(self.error_order)
+        y1, ks, f_last = explicit_rk_step(
+            solver, lambda tt, z, scale: self.flows(st.mode, tt, z, args, scale=scale), t, y, hh, f0)
 
         def error_norm(ops):
             y, y1, ks = ops
-            y_err = weighted_sum(solver.b_err, ks, y)
-            y1_s = jnp.where(_rows_any(jnp.isnan(y1)), y, y1)
-            scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1_s))
-            e = jnp.sqrt(_fold(jnp.add, jnp.square(y_err / scale)) / y.shape[0])
+            e = scaled_error(y, y1, rk_error_estimate(solver, ks, y), c.rtol, c.atol)
             return e, _rows_all(jnp.isfinite(y1))
 
         # Read by many fusions below, each of which would recompute it from the stages.
         e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
-        keep = (e < 1) & finite_y1
-        factor = sg(jnp.clip(c.safety * inverse_root(e, order), jnp.where(keep, 1.0, c.factormin),
-                             jnp.where(keep, c.factormax, c.safety)))
-        if W:
+        # The step-size rule of `FastIController`, per lane (a step with a non-finite value is
+        # rejected and shrunk by `nonfinite_step`, whatever the rule proposes).
+        pid = PIDState(st.inv_error, st.prev_inv_error, st.at_dtmin)
+        keep, proposed, pid_new = pid_controller(e, pid, c._get_error_order(self.error_order), hh, c)
+        keep = keep & finite_y1
+        if num_watch:
             hs = sg(hh)
             times = [sg(t) if i == 0 else sg(t_next) if i == len(self.thetas) - 1 else sg(t) + hs * float(th)
                      for i, th in enumerate(self.thetas)]
@@ -866,94 +884,97 @@ class BatchedLoop:
         else:
             finite_G = jnp.ones_like(keep)
         # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`).
-        finite, dt_new, stuck = nonfinite_step(finite_y1, finite_G, hh * factor.astype(self.dtype), sg(hh),
-                                               sg(t), self.eps)
-        dt_new = sg(dt_new)
+        finite, h_new, stuck = nonfinite_step(finite_y1, finite_G, proposed, sg(hh), sg(t), self.eps)
+        h_new = sg(h_new)
         keep = keep & finite
         counted = eqx.tree_at(
             lambda s: (s.h, s.num_steps, s.num_rejected), st,
-            (jnp.where(stepping, dt_new, st.h), st.num_steps + stepping.astype(jnp.int32),
+            (jnp.where(stepping, h_new, st.h), st.num_steps + stepping.astype(jnp.int32),
              st.num_rejected + (stepping & ~keep).astype(jnp.int32)))
-        if W:
+        if pid_new is not pid:  # a rule with history (`has_history`): kept where the step is finite
+            kept_rule = tuple(jnp.where(stepping & finite, a, b) for a, b in zip(pid_new, pid, strict=True))
+            counted = eqx.tree_at(lambda s: (s.inv_error, s.prev_inv_error, s.at_dtmin), counted, kept_rule)
+        if num_watch:
             ok = keep & stepping
-            has, j, suspect, i_d, x0_d = _detect(st.g_prev, G_e, D_e, times, some_step)
-            has = has & ok
-            suspect = suspect & ok & (~has | (i_d < j))
-            need = _rows_any(has | suspect)
+            det = _detect(st.g_prev_slots, G_e, D_e, times, some_step)
+            has = det.has & ok
+            det = det._replace(has=has, suspect=dip_filter(has, det.j, det.suspect & ok, det.i_d))
+            need = _rows_any(has | det.suspect)
         acc = stepping & keep
         new = eqx.tree_at(
             lambda s: (s.t, s.y, s.f0, s.zero_run), counted,
             (jnp.where(acc, t_next, counted.t), jnp.where(acc, y1, counted.y),
              jnp.where(acc, f_last, counted.f0), jnp.where(acc, 0, counted.zero_run)))
-        if W:
-            new = eqx.tree_at(lambda s: s.g_prev, new, jnp.where(acc, G_e[-1], new.g_prev))
+        if num_watch:
+            new = eqx.tree_at(lambda s: s.g_prev_slots, new, jnp.where(acc, G_e[-1], new.g_prev_slots))
         reached = acc & (t_next >= st.t1)
-        if W:
+        if num_watch:
             def events(idx, carry):
                 # Lanes with an event in this step: undo the acceptance above, then locate,
                 # jump, and start the next epoch (all only when some lane needs it), on the
                 # block of those lanes.
                 new_all, rec, t_end = carry
                 out = self.lane_map(self._event_lane,
-                                    *self.take((t, t_next, y, y1, ks, st.mode, has, j, suspect,
-                                                i_d, x0_d, times, dt_new, st.t1), idx),
+                                    *self.take((LaneStep(t, t_next, y, y1, ks), det, st.mode, times,
+                                                h_new, st.t1), idx),
                                     args=self.lane_args(st, idx))
                 # Each output feeds several fields' updates; computed once (`_materialize`).
                 out = _materialize(out, jnp.any(need))
-                back = ("t", "y", "f0", "g_prev", "zero_run")
+                back = ("t", "y", "f0", "g_prev_slots", "zero_run")
                 new = b0 = _gather_lanes(new_all, idx)
                 before = _gather_lanes(st, idx)
                 in_block = self.in_block(idx, need)
-                ev = in_block & out["event"]
+                ev = in_block & out.event
                 new = eqx.tree_at(lambda s: [getattr(s, f) for f in back], new,
                                   [jnp.where(ev, getattr(before, f), getattr(new, f)) for f in back])
-                new = _stop(new, in_block & self.take(reached, idx) & ~ev, Status.T1_REACHED)
-                blocked = ev & (out["k"] >= K)
+                new = _stop(new, (in_block & self.take(reached, idx) & ~ev, Status.T1_REACHED))
+                blocked = ev & blocks(out.k, K)
                 new = eqx.tree_at(lambda s: (s.t, s.y), new,
-                                  (jnp.where(blocked, out["t_ev"], new.t),
-                                   jnp.where(blocked, out["y_before"], new.y)))
-                new = _stop(new, blocked, Status.BLOCKED)
+                                  (jnp.where(blocked, out.t_ev, new.t),
+                                   jnp.where(blocked, out.y_before, new.y)))
+                new = _stop(new, (blocked, Status.BLOCKED))
                 if K:
-                    jumping = ev & (out["k"] < K)
-                    new, rec = self.jump(new, rec, jumping, out["k"], out["t_ev"], out["y_before"],
-                                         out["y_after"], out["simultaneous"], out["grazing"],
-                                         zero_length=False)
+                    jumping = ev & ~blocks(out.k, K)
+                    new, rec, completed = self.jump(new, rec, jumping, out.k, out.t_ev, out.y_before,
+                                                    out.y_after, out.simultaneous, out.grazing,
+                                                    zero_length=False, args=self.lane_args(st, idx))
                     # The new epoch's start test was done with the event: where no guard fires
-                    # at once, start it here (the start stage handles the rest next iteration).
-                    go = (jumping & new.at_start & ~new.done & ~out["next_fire"] & out["next_finite"]
-                          & (new.t < new.t1))
+                    # at once, start it here (the start stage handles the rest next iteration,
+                    # and the epoch after a Zeno completion).
+                    go = (jumping & new.at_start & ~new.done & ~completed & ~out.next.fire
+                          & out.next.finite & (new.t < new.t1))
                     new = eqx.tree_at(
-                        lambda s: (s.at_start, s.g_prev, s.h, s.f0), new,
-                        (new.at_start & ~go, jnp.where(go, out["next_g"], new.g_prev),
-                         jnp.where(go, out["next_dt"], new.h), jnp.where(go, out["next_F"], new.f0)))
+                        lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), new,
+                        (new.at_start & ~go, jnp.where(go, out.next.g_start, new.g_prev_slots),
+                         jnp.where(go, out.next.h, new.h), jnp.where(go, out.next.F, new.f0)))
+                    new = self.restart_step_rule(new, go)
                 new_all = _scatter_lanes(new_all, b0, new, idx)
                 # An event lane's step ends at its event, t_star (elsewhere t_star is t_next).
                 if self.save_ts.shape[0]:
-                    t_star = jnp.where(ev, out["t_star"], self.take(t_end, idx))
+                    t_star = jnp.where(ev, out.t_star, self.take(t_end, idx))
                     t_end = t_star if idx is None else t_end.at[idx].set(t_star, mode="drop")
                 return new_all, rec, t_end
 
             def some_events(carry):
                 new, rec, t_end = carry
-                new = _stop(new, reached & ~need, Status.T1_REACHED)
+                new = _stop(new, (reached & ~need, Status.T1_REACHED))
                 return self.on_block(need, events, (new, rec, t_end))
 
             def no_events(carry):
                 new, rec, t_end = carry
-                return _stop(new, reached, Status.T1_REACHED), rec, t_end
+                return _stop(new, (reached, Status.T1_REACHED)), rec, t_end
 
             new, rec, t_end = lax.cond(jnp.any(need), some_events, no_events, (new, rec, sg(t_next)))
             took = acc
         else:
-            new = _stop(new, reached, Status.T1_REACHED)
+            new = _stop(new, (reached, Status.T1_REACHED))
             took, t_end = acc, sg(t_next)
         if self.save_ts.shape[0]:
             new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks)
         # A non-finite step that cannot be shrunk any further stops the lane at the step's
         # start, where everything was finite.
-        new = _stop_first(new, (stepping & stuck, Status.NONFINITE),
-                          (stepping & step_collapsed(finite, dt_new, sg(t), self.eps), Status.STEP_COLLAPSE),
-                          (stepping & (new.num_steps >= self.max_steps), Status.MAX_STEPS))
+        stops = step_stops(stuck, finite, h_new, sg(t), self.eps, new.num_steps, self.max_steps)
+        new = _stop(new, *((stepping & pred, status) for pred, status in stops))
         return new, rec
 
     # ------------------------------------------------------------------ saved states
@@ -970,11 +991,11 @@ class BatchedLoop:
 
         def window(carry):
             rec, ptr = carry
-            idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (W, N)
+            idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
-            ok = took & (idx < S) & (tt <= t_end)
+            ok = took & (idx < S) & saved_in_step(tt, sg(t), t_end)
             dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
-            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, W, N)
+            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
             ys = rec.ys.at[lanes[None, :], rows].set(jnp.moveaxis(vals, 0, -1), mode="drop")
             modes = rec.saved_modes.at[lanes[None, :], rows].set(
@@ -1015,7 +1036,7 @@ class BatchedLoop:
             kind=self.loop_kind,
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
-        st = _stop(st, jnp.ones_like(st.done), Status.MAX_STEPS)
+        st = _stop(st, (jnp.ones_like(st.done), Status.MAX_STEPS))
         if not self.refill:
             return Finals.of(st), rec
         rec = self.flush(st, rec, st.exec_id < self.num_exec)

@@ -29,7 +29,6 @@ concrete value of an array argument (a 0-d NumPy array `mode0` of `simulate_batc
 call is made as a plain call.
 """
 
-import contextvars
 import functools
 import inspect
 from collections.abc import Callable
@@ -47,28 +46,11 @@ from ._transforms import (
     eager_at_top,
     naming_the_forward_mode_fix,
 )
-
-_TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", default=None)
-
-
-class _Ticket:
-    used: bool = False
-
+from ._validation import _TIME_SPAN_CHECKED, _Ticket
 
 # The errors of code that needs a concrete value where the compiled call gives it a tracer.
 _NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
                    jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)
-
-
-def take_time_span_check() -> bool:
-    """Whether t1 >= t0 was checked on concrete values at the call being traced, so that its
-    check needs no traced copy (and no host callback). True once per compiled call, for the
-    first check made in its trace: the call's own."""
-    ticket = _TIME_SPAN_CHECKED.get()
-    if ticket is None or ticket.used:
-        return False
-    ticket.used = True
-    return True
 
 
 class _StaticScalar:
@@ -117,10 +99,10 @@ def compiled_when_eager(check_time_span: Callable) -> Callable:
 
     `check_time_span(t0, t1, where, given)` is called at the call where t0 and t1 are known
     (a `ValueError` there); inside the compiled call `take_time_span_check()` then says so, and
-    the traced check adds no host callback (which would keep the program out of JAX's
-    persistent compilation cache). Traced t0 or t1 (a derivative or a batch over them) are
-    checked inside the program. Whether they were checked at the call is part of the cache
-    key, so that a program without the check never serves a call that needs it."""
+    the program needs no check of its own. Traced t0 or t1 (a derivative or a batch over them)
+    are checked inside the program (a `T1_BEFORE_T0` status where t1 < t0). Whether they were
+    checked at the call is part of the cache key, so that a program without the check never
+    serves a call that needs it."""
 
     def wrap(fn: Callable) -> Callable:
         signature = inspect.signature(fn)

@@ -21,11 +21,15 @@ carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
     factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),
 
 q the solver's error order (its order + 1 for an ODE, as diffrax counts it). `engine="auto"`
-uses both where they give diffrax's steps exactly. (The batched engine computes e^(-1/q) by
-`inverse_root`, within a few ulps of `pow`: its steps agree with these to rounding.)
+uses both where they give diffrax's steps exactly.
+
+The step (`explicit_rk_step`, `rk_error_estimate`) and the step-size rule (`scaled_error`,
+`pid_controller`) are written once, for one execution, over the leading (component) axis of the
+state: the per-execution engine calls them through `UnrolledERK` and `FastIController`, the
+batched engine on its lanes-last (n, lanes) arrays, where they broadcast over the lanes.
 """
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -91,17 +95,132 @@ def can_unroll(solver) -> bool:
 
 def can_use_fast_controller(controller) -> bool:
     """Whether `FastIController` reproduces `controller`'s steps (a default-coefficient PID)."""
-    if type(controller) is not diffrax.PIDController:
+    if not can_batch_controller(controller):
+        return False
+    c = controller
+    return bool(c.pcoeff == 0 and c.icoeff == 1 and c.dcoeff == 0 and c.dtmin is None and c.dtmax is None)
+
+
+def can_batch_controller(controller) -> bool:
+    """Whether `pid_controller` reproduces `controller`'s steps: a `PIDController` with the rms
+    norm, Python-number coefficients and bounds, and no step_ts / jump_ts."""
+    if type(controller) is not diffrax.PIDController or controller.norm is not optx.rms_norm:
         return False
     c = controller
     try:
-        plain = (c.pcoeff == 0 and c.icoeff == 1 and c.dcoeff == 0 and c.dtmin is None
-                 and c.dtmax is None and getattr(c, "step_ts", None) is None
-                 and getattr(c, "jump_ts", None) is None)
-        plain = bool(plain)
+        return bool(getattr(c, "step_ts", None) is None and getattr(c, "jump_ts", None) is None
+                    and all(isinstance(v, (int, float)) for v in (c.pcoeff, c.icoeff, c.dcoeff, c.safety,
+                                                                 c.factormin, c.factormax))
+                    and all(v is None or isinstance(v, (int, float)) for v in (c.dtmin, c.dtmax)))
     except jax.errors.ConcretizationTypeError:  # traced coefficients: the general controller
         return False
-    return plain and c.norm is optx.rms_norm
+
+
+def explicit_rk_step(tab, field, t0, y0, h, f0):
+    """One explicit Runge-Kutta step of size h from (t0, y0) with the tableau `tab` (its `c`,
+    `a` rows, `b_sol`, `ssal`), the first stage's field value f0 given:
+
+        k_1 = h f0,   k_i = h F(t0 + c_i h, y0 + sum_{j<i} a_ij k_j),   y1 = y0 + sum_i b_i k_i
+
+    (y1 the last stage's state for an SSAL tableau). `field(t, y, scale)` is F(t, y) times
+    `scale` (h for every stage but the last), or F(t, y) for `scale` None (the last, whose value
+    an FSAL tableau reuses as the next step's f0). Returns `(y1, ks, f_last)`.
+    """
+    ks, z, f_last = [f0 * h], y0, f0
+    last = len(tab.c) - 1
+    for i, (c_i, a_i) in enumerate(zip(tab.c, tab.a, strict=True)):
+        z = y0 + weighted_sum(a_i, ks, y0)
+        if i < last:
+            ks.append(field(t0 + c_i * h, z, h))
+        else:
+            f_last = field(t0 + c_i * h, z, None)
+            ks.append(f_last * h)
+    y1 = z if tab.ssal else y0 + weighted_sum(tab.b_sol, ks, y0)
+    return y1, ks, f_last
+
+
+def rk_error_estimate(tab, ks, y0):
+    """The embedded error estimate of a step, err = sum_i b^err_i k_i."""
+    return weighted_sum(tab.b_err, ks, y0)
+
+
+def scaled_error(y0, y1, y_err, rtol, atol):
+    """The step's error relative to the tolerances, an RMS over the components (leading axis):
+
+        e = sqrt( sum_i (err_i / (atol + rtol max(|y0_i|, |y1_i|)))^2 / n ),
+
+    with y1 read as y0 where it has a NaN (diffrax's rule). No gradient is taken through it."""
+    y0, y1, y_err = lax.stop_gradient((y0, y1, y_err))
+    y1 = jnp.where(fold(jnp.logical_or, jnp.isnan(y1)), y0, y1)
+    scale = atol + rtol * jnp.maximum(jnp.abs(y0), jnp.abs(y1))
+    return jnp.sqrt(fold(jnp.add, jnp.square(y_err / scale)) / y0.shape[0])
+
+
+class PIDState(NamedTuple):
+    """The step-size history of diffrax's `PIDController`: 1/e of the last accepted step and of
+    the one before, and whether the step is at `dtmin`."""
+
+    inv_error: jax.Array
+    prev_inv_error: jax.Array
+    at_dtmin: jax.Array
+
+
+def has_history(c) -> bool:
+    """Whether the rule reads `PIDState` (P or D terms, or dtmin); the I controller does not."""
+    return not (c.pcoeff == 0 and c.dcoeff == 0 and c.dtmin is None)
+
+
+def pow_root(e, q):
+    """e^(-1/q) as diffrax computes it, `(1 / e) ** (1 / q)`."""
+    return (1 / e) ** (1 / q)
+
+
+def pid_controller(e, state: PIDState, order, h, c, root=None):
+    """diffrax's `PIDController` rule for the next step size from the scaled error e of a step of
+    size h (`scaled_error`), with the controller `c`'s coefficients, q the error order:
+
+        keep = e < 1 (or at dtmin),   h_next = h clip(safety (1/e)^b1 r1^b2 r2^b3, bounds),
+        b1 = (i + p + d) / q,  b2 = -(p + 2 d) / q,  b3 = d / q,
+
+    r1, r2 the 1/e of the last two accepted steps (`PIDState`), bounds [1, factormax] for a kept
+    step and [factormin, safety] otherwise (p = d = 0: the I controller); then
+    h_next <= dtmax and h_next >= dtmin. Elementwise: lanes broadcast. `root(e, q)` computes
+    e^(-1/q): `inverse_root` (elementwise arithmetic, which XLA:CPU vectorises) in the batched
+    engine (the default), `pow_root` (diffrax's own `pow`, so that the steps are diffrax's to the last bit) in
+    the per-execution one; the two agree to a few ulps. Returns `(keep, h_next, state)`, the
+    state `state` itself where the rule reads none (`has_history`).
+    """
+    i_sum = c.icoeff + c.pcoeff + c.dcoeff
+    b2, b3 = -(c.pcoeff + 2 * c.dcoeff) / order, c.dcoeff / order
+    history = 1.0
+    if b2 != 0:
+        history = history * state.inv_error**b2
+    if b3 != 0:
+        history = history * state.prev_inv_error**b3
+    keep = e < 1
+    if c.dtmin is not None:
+        keep = keep | state.at_dtmin
+    # the I term, e^(-1/q') with q' = q / (i + p + d)
+    root = inverse_root if root is None else root
+    term = root(e, order / i_sum) if i_sum != 0 else jnp.ones_like(e)
+    lo = jnp.where(keep, 1.0, c.factormin)
+    hi = jnp.where(keep, c.factormax, c.safety)
+    factor = lax.stop_gradient(jnp.clip(c.safety * term * history, lo, hi))
+    h_next = h * factor.astype(jnp.result_type(h))
+    if c.dtmax is not None:
+        h_next = jnp.minimum(h_next, c.dtmax)
+    at_dtmin = state.at_dtmin
+    if c.dtmin is not None:
+        h_next = jnp.where(state.at_dtmin & (factor == 1), c.dtmin, h_next)
+        at_dtmin = h_next <= c.dtmin
+        h_next = jnp.maximum(h_next, c.dtmin)
+    if not has_history(c):
+        return keep, h_next, state
+    inv = lax.stop_gradient(1 / e)
+    inv = jnp.where((inv == 0) | jnp.isinf(inv), 1.0, inv)
+    new = PIDState(jnp.where(keep, inv, state.inv_error),
+                   jnp.where(keep, state.inv_error, state.prev_inv_error), at_dtmin)
+    return keep, h_next, new
 
 
 class UnrolledERK:
@@ -126,27 +245,18 @@ class UnrolledERK:
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         h = t1 - t0
 
-        def vf(t, y):
-            return terms.vf(t, y, args)
-
-        def combo(coeffs, ks):
-            return weighted_sum(coeffs, ks, y0)
+        def field(t, y, scale):
+            F = terms.vf(t, y, args)
+            return F if scale is None else F * scale
 
         if self.fsal:
             _, f_prev = solver_state
             # After a jump (or at the start) the stored last stage is stale: evaluate f0.
-            f0 = jnp.where(made_jump, vf(t0, y0), f_prev)
+            f0 = jnp.where(made_jump, terms.vf(t0, y0, args), f_prev)
         else:
-            f0 = vf(t0, y0)
-        ks = [f0 * h]
-        z = y0
-        f_last = f0
-        for c_i, a_i in zip(self.c, self.a, strict=True):
-            z = y0 + combo(a_i, ks)
-            f_last = vf(t0 + c_i * h, z)
-            ks.append(f_last * h)
-        y1 = z if self.ssal else y0 + combo(self.b_sol, ks)
-        y_err = combo(self.b_err, ks)
+            f0 = terms.vf(t0, y0, args)
+        y1, ks, f_last = explicit_rk_step(self, field, t0, y0, h, f0)
+        y_err = rk_error_estimate(self, ks, y0)
         dense_info = dict(y0=y0, y1=y1, k=jnp.stack(ks))
         new_state = (jnp.array(False), f_last) if self.fsal else None
         return y1, y_err, dense_info, new_state, diffrax.RESULTS.successful
@@ -180,12 +290,14 @@ def inverse_root(e, q):
 
 
 class FastIController:
-    """diffrax's `PIDController(pcoeff=0, icoeff=1, dcoeff=0)` step rule, without its general
-    machinery; `init` is diffrax's (Hairer's initial step), delegated."""
+    """diffrax's `PIDController` step rule (`pid_controller`; for the default coefficients, an
+    I controller) without its general machinery; `init` is diffrax's (Hairer's initial step),
+    delegated."""
 
     def __init__(self, controller: diffrax.PIDController):
-        if not can_use_fast_controller(controller):
-            raise TypeError("FastIController: only a default-coefficient PIDController.")
+        if not can_batch_controller(controller):
+            raise TypeError("FastIController: only a PIDController with the rms norm, Python-number "
+                            "coefficients and no step_ts / jump_ts.")
         self.controller = controller
 
     def __getattr__(self, name):  # rtol, atol, ...
@@ -199,18 +311,10 @@ class FastIController:
 
     def adapt_step_size(self, t0, t1, y0, y1, args, y_err, error_order, controller_state) -> Any:
         c = self.controller
-        dtype = y0.dtype
-        error_order = c._get_error_order(error_order)
-        y1 = jnp.where(jnp.isnan(y1).any(), y0, y1)
-        scale = c.atol + c.rtol * jnp.maximum(jnp.abs(y0), jnp.abs(y1))
-        e = lax.stop_gradient(jnp.sqrt(jnp.mean(jnp.square(y_err / scale))))
-        keep = e < 1
-        factor = c.safety * (1 / e) ** (1 / error_order)
-        lo = jnp.where(keep, 1.0, c.factormin)
-        hi = jnp.where(keep, c.factormax, c.safety)
-        factor = lax.stop_gradient(jnp.clip(factor, lo, hi))
-        dt = (t1 - t0) * factor.astype(dtype)
+        e = scaled_error(y0, y1, y_err, c.rtol, c.atol)
+        state = PIDState(*controller_state)
+        keep, h_next, state = pid_controller(e, state, c._get_error_order(error_order), t1 - t0, c, pow_root)
         next_t0 = jnp.where(keep, t1, t0)
-        next_t1 = next_t0 + dt
-        return keep, next_t0, next_t1, jnp.array(False), controller_state, diffrax.RESULTS.successful
+        next_t1 = next_t0 + h_next
+        return keep, next_t0, next_t1, jnp.array(False), tuple(state), diffrax.RESULTS.successful
 

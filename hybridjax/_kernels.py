@@ -9,6 +9,7 @@ branch that was not taken never reaches a gradient.
 """
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +48,18 @@ def dispatch(index, branches: list[Callable], *operands):
         return branch
 
     return lax.switch(index, [wrap(i, f) for i, f in enumerate(branches)], index, *operands)
+
+
+class GuardJets(NamedTuple):
+    """Lie derivatives of the watched functions at one point, and their tolerance band
+    (`Kernels.guard_jets`); each field (K + W,)."""
+
+    L0: jax.Array
+    L1: jax.Array
+    L2: jax.Array
+    L3: jax.Array
+    band: jax.Array
+    scale1: jax.Array
 
 
 class Kernels:
@@ -184,7 +197,7 @@ class Kernels:
         return dispatch(c, [branch(cc) for cc in range(len(self.system.completions))], t, y, args)
 
     # ---------------------------------------------------------------- guard jets
-    def guard_jets(self, mode, t, y, args, rtol, atol, tol_t) -> dict[str, jax.Array]:
+    def guard_jets(self, mode, t, y, args, rtol, atol, tol_t) -> GuardJets:
         """Lie derivatives of every watched function along the current flow, and a tolerance band.
 
         L0 = g, L_{j+1} = d/dt L_j along (t, x) -> (1, F_I(t, x)), so L1 = D_t g + D_x g F_I.
@@ -196,8 +209,8 @@ class Kernels:
         K = self.num_watch
         if K == 0:
             z = jnp.zeros((0,), dtype=y.dtype)
-            return dict(L0=z, L1=z, L2=z, L3=z, band=z, scale1=z)
-        out: dict[str, list] = {key: [] for key in ("L0", "L1", "L2", "L3", "band", "scale1")}
+            return GuardJets(z, z, z, z, z, z)
+        out: dict[str, list] = {key: [] for key in GuardJets._fields}
         for src, fn in self.watch:
             active = mode == src
             tt, yy, aa = mask_inputs(active, (t, y, args))
@@ -219,5 +232,5 @@ class Kernels:
             scale1 = jnp.abs(gt) + jnp.sum(jnp.abs(gx * F))
             out["band"].append(jnp.sum(jnp.abs(gx) * (atol + rtol * jnp.abs(yy))) + scale1 * tol_t)
             out["scale1"].append(scale1)
-        return {key: jnp.stack(v) for key, v in out.items()}
+        return GuardJets(**{key: jnp.stack(v) for key, v in out.items()})
 

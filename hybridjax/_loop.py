@@ -3,7 +3,7 @@
 Each iteration of one execution does, in order:
 
 1. `start_stage` (only at the start of an epoch): decide whether a guard fires at once
-   (a zero-length epoch, `_events.start_decision`); if not, choose the epoch's first step.
+   (a zero-length epoch, `_rules.epoch_start`); if not, choose the epoch's first step.
 2. `step_stage`: one step of the diffrax solver with diffrax's step-size controller; on an
    accepted step, `detect` crossings on the dense interpolant, `locate` the first one,
    `save` the requested times in the step, and `jump` (record the event and apply the reset).
@@ -40,23 +40,31 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
-from ._events import (
-    carries_step,
-    departure_step_bound,
-    dip_candidates,
-    first_crossings,
-    first_step,
-    locate_minimum,
-    locate_root,
-    nonfinite_step,
-    start_decision,
-    step_collapsed,
-    strictly_inside,
-)
-from ._fast_rk import UnrolledERK, unrolled_sum
+from ._fast_rk import UnrolledERK
 from ._kernels import Kernels, mask_inputs
+from ._rules import (
+    Detection,
+    blocks,
+    carries_step,
+    dip_candidates,
+    dip_filter,
+    epoch_start,
+    event_brackets,
+    event_point,
+    event_time_tol,
+    first_crossings,
+    first_event,
+    jump_outcome,
+    nonfinite_step,
+    push_recent,
+    saved_in_step,
+    step_end,
+    step_stops,
+    stop_first,
+    zeno_completion,
+)
 from ._status import Status
-from ._zeno import detect_zeno
+from ._zeno import ZenoOptions, detect_zeno
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -70,12 +78,12 @@ class LoopState(eqx.Module):
     t: jax.Array
     y: jax.Array
     mode: jax.Array
-    dt: jax.Array
+    h: jax.Array  # the next step's size (0 before the first)
     solver_state: Any
     controller_state: Any
     made_jump: jax.Array
     at_start: jax.Array
-    g_prev: jax.Array
+    g_prev: jax.Array  # (K + W,) the watched values at the last sample (the epoch's start values)
     num_events: jax.Array
     zero_run: jax.Array
     num_steps: jax.Array
@@ -131,14 +139,10 @@ def _select(pred, a, b):
     return jtu.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
-def _stop(st: LoopState, pred, status: Status) -> LoopState:
-    """Mark the execution done with `status` where `pred` (and it is not done already)."""
-    pred = pred & ~st.done
-    return eqx.tree_at(
-        lambda s: (s.done, s.status),
-        st,
-        (st.done | pred, Status.where(pred, status, st.status)),
-    )
+def _stop(st: LoopState, *rules) -> LoopState:
+    """`st` stopped by the first of the rules `(pred, Status)` that holds (`stop_first`)."""
+    done, code = stop_first(st.done, st.status._value, *rules)
+    return eqx.tree_at(lambda s: (s.done, s.status._value), st, (done, code))
 
 
 class Loop:
@@ -159,14 +163,14 @@ class Loop:
         interior_points: int,
         event_tol,
         max_zero_epochs: int,
-        zeno: dict | None,
+        zeno: ZenoOptions | None,
         loop_kind: str,
         checkpoints,
         dtype,
     ):
         self.kern = Kernels(system, args, dtype)
         self.zeno = zeno
-        self.recent = (zeno["window"] + 2) if zeno is not None else 2
+        self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
         self.t1 = t1
         self.args = args
@@ -195,17 +199,13 @@ class Loop:
         self.atol = jnp.sqrt(self.eps) if atol is None else atol
 
     # ----------------------------------------------------------------- helpers
-    def time_tol(self, t, h):
-        """Event-time tolerance: `event_tol` relative to the step, floored at 8 ulp of t."""
-        return jnp.maximum(self.event_tol * jnp.abs(h), 8 * self.eps * jnp.abs(t))
-
     def error_order(self):
         return self.solver.error_order(self.terms)
 
     # ----------------------------------------------------------------- init
     def init(self, t0, y0, mode0) -> LoopState:
         n = self.kern.n
-        dt = self.dtype
+        dtype = self.dtype
         args_ext = (mode0, self.args)
         solver_state = self.solver.init(self.terms, t0, self.t1, y0, args_ext)
         _, controller_state = self.controller.init(
@@ -215,12 +215,12 @@ class Loop:
             t=t0,
             y=y0,
             mode=mode0,
-            dt=jnp.zeros((), dt),
+            h=jnp.zeros((), dtype),
             solver_state=solver_state,
             controller_state=controller_state,
             made_jump=jnp.array(True),
             at_start=jnp.array(True),
-            g_prev=jnp.zeros((self.kern.num_watch,), dt),
+            g_prev=jnp.zeros((self.kern.num_watch,), dtype),
             num_events=jnp.array(0, jnp.int32),
             zero_run=jnp.array(0, jnp.int32),
             num_steps=jnp.array(0, jnp.int32),
@@ -229,18 +229,18 @@ class Loop:
             status=Status.T1_REACHED,
             pend_count=jnp.array(0, jnp.int32),
             pend_at=jnp.zeros((2,), jnp.int32),
-            pend_time=jnp.zeros((2,), dt),
+            pend_time=jnp.zeros((2,), dtype),
             pend_transition=jnp.zeros((2,), jnp.int32),
-            pend_before=jnp.zeros((2, n), dt),
-            pend_after=jnp.zeros((2, n), dt),
+            pend_before=jnp.zeros((2, n), dtype),
+            pend_after=jnp.zeros((2, n), dtype),
             pend_target=jnp.zeros((2,), jnp.int32),
             pend_simultaneous=jnp.zeros((2,), bool),
             pend_grazing=jnp.zeros((2,), bool),
             pend_inside=jnp.zeros((2,), bool),
-            zeno_time=jnp.array(jnp.inf, dt),
-            zeno_state=jnp.full((n,), jnp.inf, dt),
-            recent_times=jnp.full((self.recent,), jnp.inf, dt),
-            recent_states=jnp.full((3, n), jnp.inf, dt),
+            zeno_time=jnp.array(jnp.inf, dtype),
+            zeno_state=jnp.full((n,), jnp.inf, dtype),
+            recent_times=jnp.full((self.recent,), jnp.inf, dtype),
+            recent_states=jnp.full((3, n), jnp.inf, dtype),
         )
 
     # ----------------------------------------------------------------- jump
@@ -271,21 +271,21 @@ class Loop:
                 put(st.pend_inside, inside),
                 st.pend_count + 1,
                 st.num_events + 1,
-                jnp.concatenate([st.recent_times[1:], jnp.reshape(t_ev, (1,)).astype(st.recent_times.dtype)]),
-                jnp.concatenate([st.recent_states[1:], y_after[None].astype(st.recent_states.dtype)]),
+                push_recent(st.recent_times, jnp.asarray(t_ev)),
+                push_recent(st.recent_states, y_after),
             ),
         )
 
     def init_record(self, t0, y0, mode0) -> EventRecord:
-        E, n, dt = self.max_epochs, self.kern.n, self.dtype
+        E, n, dtype = self.max_epochs, self.kern.n, self.dtype
         at_t0 = self.save_ts <= t0
         return EventRecord(
-            ys=jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dt),
+            ys=jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dtype),
             saved_modes=jnp.where(at_t0, mode0, -1).astype(jnp.int32),
-            event_times=jnp.full((E,), jnp.inf, dt),
+            event_times=jnp.full((E,), jnp.inf, dtype),
             transitions=jnp.full((E,), -1, jnp.int32),
-            states_before=jnp.full((E, n), jnp.inf, dt),
-            states_after=jnp.full((E, n), jnp.inf, dt),
+            states_before=jnp.full((E, n), jnp.inf, dtype),
+            states_after=jnp.full((E, n), jnp.inf, dtype),
             epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
             simultaneous=jnp.zeros((E,), bool),
             grazing=jnp.zeros((E,), bool),
@@ -333,48 +333,39 @@ class Loop:
     ) -> LoopState:
         """Record transition k at t_ev and apply its reset; then stop on too many epochs,
         non-finite values, chattering, or Zeno (or complete the Zeno execution)."""
-        full = st.num_events >= self.max_epochs
         y_after = self.kern.reset(k, t_ev, y_before, args)
-        finite = jnp.all(jnp.isfinite(y_after))
+        out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
+                           self.max_zero_epochs)
         target = self.kern.targets[k]
-        zero_run = jnp.where(zero_length, st.zero_run + 1, 0)
         recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing, inside)
-        jumped = self._begin_epoch(recorded, t_ev, y_after, target, zero_run)
-        jumped = _stop(jumped, zero_run > self.max_zero_epochs, Status.CHATTERING)
-        if self.zeno is not None:
-            jumped = self.zeno_stage(jumped, args)
+        jumped = self._begin_epoch(recorded, t_ev, y_after, target, out.zero_run)
         # A non-finite reset keeps the event (its after-state shows the culprit) but ends the
-        # execution at the pre-event state.
-        bad = eqx.tree_at(lambda s: (s.t, s.y), recorded, (t_ev, y_before))
-        bad = _stop(bad, jnp.array(True), Status.NONFINITE)
-        not_recorded = eqx.tree_at(lambda s: (s.t, s.y), st, (t_ev, y_before))
-        not_recorded = _stop(not_recorded, jnp.array(True), Status.MAX_EPOCHS)
-        out = _select(finite, jumped, bad)
-        return _select(full, not_recorded, out)
+        # execution at the pre-event state; an event the record has no room for is not kept.
+        held = eqx.tree_at(lambda s: (s.t, s.y), _select(out.recorded, recorded, st), (t_ev, y_before))
+        new = _stop(_select(out.applied, jumped, held), *out.stops)
+        if self.zeno is not None:
+            new = _select(out.applied, self.zeno_stage(new, args), new)
+        return new
 
     def zeno_stage(self, st: LoopState, args) -> LoopState:
         """After an event: if event times accumulate before t1, stop with ZENO or complete."""
-        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, **self.zeno)
+        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, self.zeno)
         is_zeno = is_zeno & ~st.done
         st = eqx.tree_at(
             lambda s: (s.zeno_time, s.zeno_state),
             st,
             (jnp.where(is_zeno, t_inf, st.zeno_time), jnp.where(is_zeno, x_inf, st.zeno_state)),
         )
-        stopped = _stop(st, is_zeno, Status.ZENO)
+        stopped = _stop(st, (is_zeno, Status.ZENO))
         if not self.system.completions:
             return stopped
-        c = self.kern.completion_of_mode[st.mode]
-        has = c >= 0
-        c_safe = jnp.maximum(c, 0)
-        st_c, x_c, t_c, args_c = mask_inputs(is_zeno & has, (st, x_inf, t_inf, args))
-        y_after = self.kern.completion_reset(c_safe, t_c, x_c, args_c)
-        target = self.kern.completion_targets[c_safe]
-        index = self.kern.num_transitions + c_safe
-        done = self._record(st_c, index, t_c, x_c, y_after, target, jnp.array(False), jnp.array(False))
-        done = self._begin_epoch(done, t_c, y_after, target, jnp.array(0, jnp.int32))
-        done = _stop(done, st.num_events >= self.max_epochs, Status.MAX_EPOCHS)
-        return _select(is_zeno & has, done, stopped)
+        comp = zeno_completion(self.kern, st.mode, is_zeno, t_inf, x_inf, args)
+        st_c = mask_inputs(comp.completes, st)
+        done = self._record(st_c, comp.index, comp.t, comp.x, comp.y_after, comp.target, jnp.array(False),
+                            jnp.array(False))
+        done = self._begin_epoch(done, comp.t, comp.y_after, comp.target, jnp.array(0, jnp.int32))
+        done = _stop(done, (st.num_events >= self.max_epochs, Status.MAX_EPOCHS))
+        return _select(comp.completes, done, stopped)
 
     # ----------------------------------------------------------------- start of an epoch
     def start_stage(self, st: LoopState) -> LoopState:
@@ -382,45 +373,31 @@ class Loop:
 
         def run(st):
             t, y, mode = sg(st.t), sg(st.y), st.mode
-            args = sg(self.args)
-            tol_t = self.time_tol(t, st.dt)
-            jets = self.kern.guard_jets(mode, t, y, args, self.rtol, self.atol, tol_t)
-            outgoing = self.kern.outgoing_mask(mode)
-            fire, g_start = start_decision(jets, outgoing, self.eps)
-            F = self.kern.flow(mode, t, y, args)
-            L0_out = jnp.where(outgoing, jets["L0"], 0.0)
-            finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(L0_out))
+            t_init, ctrl_state = self.controller.init(
+                self.terms, t, self.t1, y, self.dt0, (mode, self.args), self.solver.func, self.error_order()
+            )
+            start = epoch_start(self.kern, mode, t, y, sg(self.args), st.h, t_init - t, carry=self.carry_step,
+                                rtol=self.rtol, atol=self.atol, event_tol=self.event_tol, eps=self.eps)
             K = self.kern.num_transitions
-            k = jnp.argmax(fire).astype(jnp.int32) if self.kern.num_watch else jnp.array(0, jnp.int32)
             # A domain component (index >= K) "firing" with no guard before it: the state is
             # outside its domain (a reset outside the target domain, or x0) or leaving it.
-            blocked = _stop(st, jnp.array(True), Status.BLOCKED)
+            blocked = _stop(st, (jnp.array(True), Status.BLOCKED))
             if K:
                 # Inputs of a branch not taken get no gradient (NaN-safe "double where").
-                st_f, args_f = mask_inputs(active & jnp.any(fire) & (k < K), (st, self.args))
-                k_safe = jnp.minimum(k, K - 1)
-                fired = self.jump(
-                    st_f, k_safe, st_f.t, st_f.y, jnp.sum(fire[:K]) > 1, jnp.array(True), args_f,
-                    inside=strictly_inside(jets)[k_safe],
-                )
-                fired = _select(k < K, fired, blocked)
+                st_f, args_f = mask_inputs(active & start.fire & ~blocks(start.k, K), (st, self.args))
+                fired = self.jump(st_f, jnp.minimum(start.k, K - 1), st_f.t, st_f.y, start.simultaneous,
+                                  jnp.array(True), args_f, inside=start.inside)
+                fired = _select(blocks(start.k, K), blocked, fired)
             else:
                 fired = blocked
-
-            args_ext = (mode, self.args)
-            t_init, ctrl_state = self.controller.init(
-                self.terms, t, self.t1, y, self.dt0, args_ext, self.solver.func, self.error_order()
-            )
-            dt = jnp.minimum(first_step(t_init - t, st.dt, self.carry_step),
-                             departure_step_bound(jets, outgoing, fire))
             go = eqx.tree_at(
-                lambda s: (s.at_start, s.g_prev, s.dt, s.controller_state, s.made_jump),
+                lambda s: (s.at_start, s.g_prev, s.h, s.controller_state, s.made_jump),
                 st,
-                (jnp.array(False), g_start, sg(dt).astype(self.dtype), ctrl_state, jnp.array(True)),
+                (jnp.array(False), start.g_start, start.h.astype(self.dtype), ctrl_state, jnp.array(True)),
             )
-            go = _stop(go, st.t >= self.t1, Status.T1_REACHED)
-            new = _select(jnp.any(fire), fired, go)
-            new = _stop(new, ~finite, Status.NONFINITE)
+            go = _stop(go, (st.t >= self.t1, Status.T1_REACHED))
+            new = _select(start.fire, fired, go)
+            new = _stop(new, (~start.finite, Status.NONFINITE))
             return _select(active, new, st)
 
         return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
@@ -437,7 +414,7 @@ class Loop:
         kern, mode = self.kern, st.mode
         args_ext = (mode, args)
         t = st.t
-        t_next = jnp.minimum(jnp.maximum(t + st.dt, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), self.t1)
+        t_next = step_end(t, st.h, self.t1)
         y1, y_err, dense_info, solver_state, _ = self.solver.step(
             self.terms, t, t_next, st.y, args_ext, st.solver_state, st.made_jump
         )
@@ -471,71 +448,31 @@ class Loop:
         # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`);
         # the controller's NaN error and proposal are not used.
         h = sg(t_next - t)
-        finite, dt_new, stuck = nonfinite_step(finite_y1, jnp.all(jnp.isfinite(G)), nt1 - nt0, h, sg(t),
-                                               self.eps)
+        finite, h_new, stuck = nonfinite_step(finite_y1, jnp.all(jnp.isfinite(G)), nt1 - nt0, h, sg(t),
+                                              self.eps)
         keep = keep & finite
-        dt_new = sg(dt_new).astype(self.dtype)
+        h_new = sg(h_new).astype(self.dtype)
         ctrl_state = _select(finite, ctrl_state, st.controller_state)
+        ok = keep & active
         has, j = first_crossings(st.g_prev, G)
-        has = has & keep & active
-        tol = self.time_tol(sg(t_next), h)
+        # A guard can dip below zero and come back between two samples (near-grazing): where
+        # the end tangents allow it, the minimum is searched for on the interpolant.
+        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e, s_ext)
+        has = has & ok
+        det = Detection(has, j, dip_filter(has, j, suspect & ok, i_d), i_d, x0_d)
+        tol = event_time_tol(self.event_tol, sg(t_next), h, self.eps)
 
-        def path(k):
-            return lambda x: kern.guards(mode, x, interp_sg.evaluate(x), args_sg)[k]
-
-        # A guard can dip below zero and come back between two samples (near-grazing):
-        # where the end tangents allow it, find the minimum on the interpolant.
-        V = jnp.concatenate([st.g_prev[None], G])
-        suspect, i_d, x0_d = dip_candidates(V, jnp.where(jnp.isfinite(D_e), D_e, 0.0), s_ext)
-        suspect = suspect & keep & active & (~has | (i_d < j))
-
-        def refine(_):
-            def lowest(k, a_k, b_k, x_k):
-                return locate_minimum(path(k), a_k, b_k, x_k, tol)
-
-            return jax.vmap(lowest)(jnp.arange(kern.num_watch), s_ext[i_d], s_ext[i_d + 1], x0_d)
-
-        def no_refine(_):
-            return x0_d, jnp.ones_like(x0_d)
+        def values_at(x):
+            return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
 
         if kern.num_watch:
-            x_min, g_min = lax.cond(eqxi.unvmap_any(jnp.any(suspect)), refine, no_refine, None)
-            dip = suspect & (g_min < 0)
+            # locate: only when some execution in the batch has an event in this step.
+            br = event_brackets(values_at, det, s_ext, tol)
+            t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next))
+            any_event = jnp.any(br.has)
         else:
-            x_min, dip = x0_d, suspect
-        a_all = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
-        b_all = jnp.where(dip, x_min, s[j])
-        has = has | dip
-        any_event = jnp.any(has)
-
-        # locate: only when some execution in the batch has an event in this step.
-        def locate(_):
-            a, b = a_all, b_all
-
-            def root(k, a_k, b_k):
-                return locate_root(path(k), a_k, b_k, tol)
-
-            tk = jax.vmap(root)(jnp.arange(kern.num_watch), a, b)
-            tk = jnp.where(has, tk, jnp.inf)
-            first = jnp.argmin(tk)
-            t_min = tk[first]
-            # Also "reached at the same instant": a guard that is <= 0 at t_min but was > 0 at
-            # the start of the earliest bracket (its window may be narrower than the samples).
-            t_at = jnp.where(jnp.any(has), t_min, b[first])
-            g_at = kern.guards(mode, t_at, interp_sg.evaluate(t_at), args_sg)
-            g_from = kern.guards(mode, a[first], interp_sg.evaluate(a[first]), args_sg)
-            cand = has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & jnp.any(has))
-            k = jnp.argmax(cand).astype(jnp.int32)
-            tk = jnp.where(cand & ~has, t_min, tk)
-            return jnp.where(jnp.any(has), tk[k], sg(t_next)), k, jnp.sum(cand) > 1
-
-        def no_event(_):
-            return sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
-
-        if kern.num_watch:
-            t_star, k, simultaneous = lax.cond(eqxi.unvmap_any(any_event), locate, no_event, None)
-        else:
-            t_star, k, simultaneous = no_event(None)
+            t_star, k, simultaneous = sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
+            any_event = jnp.array(False)
         ev_active = active & any_event
         if kern.num_watch:
             dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
@@ -548,7 +485,7 @@ class Loop:
             if not self.save_ts.shape[0]:
                 return rec
             t_end = jnp.where(any_event, t_star, sg(t_next))
-            mask = keep & active & (self.save_ts > sg(t)) & (self.save_ts <= t_end)
+            mask = keep & active & saved_in_step(self.save_ts, sg(t), t_end)
 
             def put_all(ys):
                 vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
@@ -578,37 +515,35 @@ class Loop:
             return eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, saved_modes))
 
         counted = eqx.tree_at(
-            lambda s: (s.dt, s.controller_state, s.num_steps, s.num_rejected),
+            lambda s: (s.h, s.controller_state, s.num_steps, s.num_rejected),
             st,
-            (dt_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32)),
+            (h_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32)),
         )
         accepted = eqx.tree_at(
             lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
             counted,
             (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
         )
-        accepted = _stop(accepted, t_next >= self.t1, Status.T1_REACHED)
+        accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
         K = kern.num_transitions
         if kern.num_watch:
-            # The domain left (index >= K) before any guard: BLOCKED at the exit, state kept.
+            # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
             blocked = eqx.tree_at(lambda s: (s.t, s.y), counted, (t_ev, y_before))
-            evented = _stop(blocked, jnp.array(True), Status.BLOCKED)
+            evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
         else:
             evented = accepted
         if K:
-            counted_e = mask_inputs(ev_active & (k < K), counted)
+            counted_e = mask_inputs(ev_active & ~blocks(k, K), counted)
             jumped = self.jump(
                 counted_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
                 args_e, grazing,
             )
-            evented = _select(k < K, jumped, evented)
+            evented = _select(blocks(k, K), evented, jumped)
         progressed = _select(keep, _select(any_event, evented, accepted), counted)
         # A non-finite step that cannot be shrunk any further stops the run at the step's
         # start, where everything was finite.
-        halted = _stop(counted, jnp.array(True), Status.NONFINITE)
-        new = _select(stuck, halted, progressed)
-        new = _stop(new, step_collapsed(finite, dt_new, sg(t), self.eps), Status.STEP_COLLAPSE)
-        new = _stop(new, new.num_steps >= self.max_steps, Status.MAX_STEPS)
+        new = _stop(_select(stuck, counted, progressed),
+                    *step_stops(stuck, finite, h_new, sg(t), self.eps, progressed.num_steps, self.max_steps))
         return _select(active, new, st_all), save
 
     # ----------------------------------------------------------------- the loop
@@ -630,49 +565,5 @@ class Loop:
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
         # The loop's own bound can only be met by executions that are still running.
-        return _stop(st, jnp.array(True), Status.MAX_STEPS), rec
+        return _stop(st, (jnp.array(True), Status.MAX_STEPS)), rec
 
-
-def event_point(kern, eps, mode, k, t_star, interp, args):
-    """The event time and pre-event state, differentiable by the implicit function theorem.
-
-    The event lies at the elapsed time u* = t* - t_s after the start t_s of its step. The
-    returned time is t_s + u* - (g(t, x*) - [g]) / [D_t g + D_x g F] and the state
-    x* + [F] (t - t*), with x* the dense output at the fixed elapsed time u*, F = F(t*, x*)
-    the true vector field and [.] meaning stop_gradient: equal in value to (t*, x*), with
-
-        dt = dt_s - (D_t g dt_s + D_x g dx*) / gdot,    dx = dx* + F (dt - dt_s),
-
-    where dx* carries the dependence on the epoch's start state and parameters (the dense
-    output's coefficients). Holding u* fixed, rather than t*, makes a shift of the epoch's
-    start time reach the event time directly: for an autonomous flow and guard the event time
-    moves one-for-one with it, exactly, whatever the solver's local error. (Through t* it
-    would arrive as D_x g xdot / D_x g F, with xdot the dense output's slope: 1 + O(tol) at
-    every epoch, an error of every later event's derivative that grows with the square of the
-    event count.) The denominator uses F, not xdot: the true slope, accurate to the
-    tolerance where the dense output's slope is one order less so.
-
-    Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
-    (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
-    ill-conditioned.
-    """
-    t_s = interp.t0
-    t_at = t_s + sg(t_star - t_s)  # the value t* (to rounding), the derivative of the step's start
-    # The dense output at the fixed elapsed time u* for the derivative ((t_at - t_s) / h has
-    # none), and at t* itself for the value: t_s + (t* - t_s) can round to a neighbour of t*.
-    x_at = interp.evaluate(t_at)
-    x_star = sg(interp.evaluate(t_star)) + (x_at - sg(x_at))
-    F = kern.flow(mode, t_at, x_star, args)
-
-    def g(tt, xx):
-        return kern.guards(mode, tt, xx, args)[k]
-
-    g_val = g(t_at, x_star)
-    gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
-    gdot = sg(gt + unrolled_sum(gx * sg(F)))  # dg/dt along the true vector field (see `fold`)
-    size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(sg(F) ** 2))
-    grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
-    safe = jnp.where(gdot != 0, gdot, 1.0)
-    shift = -(g_val - sg(g_val)) / safe  # zero in value
-    t_ev = t_star + (t_at - sg(t_at)) + shift
-    return t_ev, x_star + F * shift, grazing

@@ -45,17 +45,38 @@ def _values(fn, t, x, args, dtype) -> Array:
     return jnp.reshape(jnp.asarray(fn(t, x, args), dtype), (-1,))
 
 
-def _residuals(equalities, inequalities, t_bounds, t, x, args) -> Array:
+def _joint(equalities, inequalities) -> Callable:
+    """(t, x, args) -> (equalities, inequalities) as two 1-D arrays (empty for `None`)."""
+
+    def constraints(t, x, args):
+        return _values(equalities, t, x, args, x.dtype), _values(inequalities, t, x, args, x.dtype)
+
+    return constraints
+
+
+def _residuals(constraints, t_bounds, t, x, args) -> Array:
     """The violated parts of every constraint, one vector: their squared sum is the violation."""
-    dtype = x.dtype
-    parts = [
-        _values(equalities, t, x, args, dtype),
-        jnp.minimum(_values(inequalities, t, x, args, dtype), 0.0),
-    ]
+    eq, ineq = constraints(t, x, args)
+    parts = [eq.astype(x.dtype), jnp.minimum(ineq, 0.0).astype(x.dtype)]
     if t_bounds is not None:
         lo, hi = t_bounds
-        parts.append(jnp.minimum(jnp.stack([t - lo, hi - t]).astype(dtype), 0.0))
+        parts.append(jnp.minimum(jnp.stack([t - lo, hi - t]).astype(x.dtype), 0.0))
     return jnp.concatenate(parts)
+
+
+def _time_of(s, lo, hi):
+    """t = (lo + hi) / 2 + (hi - lo) / 2 sin(s): the time searched, kept in [lo, hi] by a smooth
+    map (a penalty on t outside the bounds has its minimiser outside them; a reflection at the
+    bounds puts a kink where the minimiser often is, at a bound, and Gauss-Newton steps
+    oscillate about it)."""
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * jnp.sin(s)
+
+
+def _angle_of(t, lo, hi):
+    """The s with `_time_of(s, lo, hi) = t`, for t in [lo, hi] at least 0.5 % of the window from
+    its ends: a start at an end would sit where d t / d s = 0, and its t would never move."""
+    w = hi - lo
+    return jnp.arcsin(jnp.clip((2 * t - lo - hi) / jnp.where(w > 0, w, 1.0), -0.99, 0.99))
 
 
 def constraint_violation(
@@ -70,8 +91,12 @@ def constraint_violation(
     `equalities(t, x, args)` and `inequalities(t, x, args)` return 1-D arrays (or scalars),
     wanted `== 0` and `>= 0`; either may be `None`.
     """
-    r = _residuals(equalities, inequalities, None, t, x, args)
-    v = jnp.sum(r**2)
+    return _violation(_joint(equalities, inequalities), None, t, x, args)
+
+
+def _violation(constraints, t_bounds, t, x, args):
+    """The squared norm of `_residuals`; infinite where a value is not finite."""
+    v = jnp.sum(_residuals(constraints, t_bounds, t, x, args) ** 2)
     return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
 
@@ -103,7 +128,7 @@ def find_point(
     - `ts` (N,), `xs` (N, n): the samples (`box_samples` draws them in a box).
     - `args`: passed to the constraint functions.
     - `t_bounds`: `None` keeps each start's t fixed; `(lo, hi)` optimises t too, within
-      [lo, hi] (the bounds enter as two more inequalities).
+      [lo, hi] (the samples' `ts` should lie in it).
     - `tol`: the violation accepted as zero.
     - `num_starts`: how many of the best samples are refined.
 
@@ -125,6 +150,31 @@ def find_point(
     """
     if equalities is None and inequalities is None:
         raise ValueError("find_point needs `equalities` or `inequalities` (both are None).")
+    return search(
+        _joint(equalities, inequalities),
+        ts,
+        xs,
+        args,
+        t_bounds=t_bounds,
+        tol=tol,
+        num_starts=num_starts,
+        max_steps=max_steps,
+    )
+
+
+def search(
+    constraints: Callable,
+    ts: Float[Array, " N"],
+    xs: Float[Array, "N n"],
+    args: Any = None,
+    *,
+    t_bounds: tuple[Any, Any] | None = None,
+    tol: float = 1e-10,
+    num_starts: int = 8,
+    max_steps: int = 64,
+) -> Witness:
+    """`find_point` with the constraints given by one function, `constraints(t, x, args) ->
+    (equalities, inequalities)` (two 1-D arrays), for constraints that share their work."""
     ts = jnp.asarray(ts)
     xs = jnp.asarray(xs)
     if xs.ndim != 2 or ts.shape != xs.shape[:1]:
@@ -134,9 +184,7 @@ def find_point(
     k = min(int(num_starts), xs.shape[0])
 
     def violation(t, x):
-        r = _residuals(equalities, inequalities, t_bounds, t, x, args)
-        v = jnp.sum(r**2)
-        return jnp.where(jnp.isfinite(v), v, jnp.inf)
+        return _violation(constraints, t_bounds, t, x, args)
 
     scores = jax.vmap(violation)(ts, xs)
     _, best = jax.lax.top_k(-scores, k)
@@ -150,13 +198,13 @@ def find_point(
 
     def refine(t, x):
         if t_bounds is None:
-            fn = lambda y, _: _residuals(equalities, inequalities, None, t, y, args)
+            fn = lambda y, _: _residuals(constraints, None, t, y, args)
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
             return t, sol.value
-        fn = lambda y, _: _residuals(equalities, inequalities, t_bounds, y[0], y[1], args)
-        sol = optx.least_squares(fn, solver, (t, x), max_steps=max_steps, throw=False)
-        lo, hi = t_bounds
-        return jnp.clip(sol.value[0], lo, hi).astype(dtype), sol.value[1]
+        fn = lambda y, _: _residuals(constraints, None, _time_of(y[0], *t_bounds), y[1], args)
+        y0 = (_angle_of(t, *t_bounds), x)
+        sol = optx.least_squares(fn, solver, y0, max_steps=max_steps, throw=False)
+        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1]
 
     t1, x1 = jax.vmap(refine)(t0, x0)
     cand_t = jnp.concatenate([t0, t1])

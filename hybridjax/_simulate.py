@@ -24,7 +24,8 @@ from ._transforms import (
     naming_the_forward_mode_fix,
     warn_if_forward_mode_beneath,
 )
-from ._validation import check_time_span
+from ._validation import as_state_array, check_time_span
+from ._zeno import ZenoOptions, zeno_options
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:
@@ -234,7 +235,7 @@ def simulate(
     event_tol: float | None = None,
     interior_points: int = 4,
     max_zero_epochs: int = 16,
-    zeno: bool = True,
+    zeno: bool | ZenoOptions = True,
     zeno_window: int = 3,
     zeno_ratio_tol: float = 0.05,
     zeno_max_ratio: float = 0.99,
@@ -302,7 +303,8 @@ def simulate(
       local minimum of a guard that may reach zero is searched for on the dense output, so
       near-grazing crossings (down to rounding level) are found too.
     - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
-    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection. After each
+    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection (`zeno` may
+      also be a `ZenoOptions`, which holds the other three; `zeno=False` switches it off). After each
       event, if the last `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch
       lengths lie in (0, zeno_max_ratio] and agree with the latest to `zeno_ratio_tol`
       (relative), and the extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is
@@ -330,7 +332,7 @@ def simulate(
         sol.event_times[:3]   # impacts at sqrt(2 h0 / g) (1 + 2 e + 2 e^2 + ...)
         ```
     """
-    x0_arr = jnp.asarray(x0)
+    x0_arr = as_state_array(x0, "simulate")
     dtype, kind, checkpoints, solver, controller, event_tol = _checked_options(
         system, x0_arr, args, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
         max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
@@ -344,7 +346,7 @@ def simulate(
     given = (t0, t1)
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
-    t1 = check_time_span(t0, t1, "simulate", given=given)
+    t1, t1_before_t0 = check_time_span(t0, t1, "simulate", given=given)
     loop = Loop(
         system,
         t1=t1,
@@ -358,8 +360,7 @@ def simulate(
         interior_points=int(interior_points),
         event_tol=event_tol,
         max_zero_epochs=int(max_zero_epochs),
-        zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
-                  max_ratio=float(zeno_max_ratio)) if zeno else None,
+        zeno=zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio),
         loop_kind=kind,
         checkpoints=checkpoints,
         dtype=dtype,
@@ -367,8 +368,9 @@ def simulate(
     with naming_the_forward_mode_fix():
         st, rec = loop.run(t0, y0, m0)
     final_time = st.t
+    status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, st.status)
     if throw:
-        final_time = st.status.error_if(final_time, st.status != Status.T1_REACHED)
+        final_time = status.error_if(final_time, status != Status.T1_REACHED)
     return Solution(
         event_times=rec.event_times,
         num_events=st.num_events,
@@ -384,7 +386,7 @@ def simulate(
         final_time=final_time,
         final_mode=st.mode,
         final_state=st.y,
-        status=st.status,
+        status=status,
         ts=loop.save_ts,
         ys=rec.ys,
         saved_modes=rec.saved_modes,

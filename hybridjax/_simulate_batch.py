@@ -12,12 +12,14 @@ from jaxtyping import ArrayLike, Float, Int
 
 from ._batched import BatchedLoop, as_status
 from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
+from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
+from ._status import Status
 from ._system import HybridSystem
 from ._transforms import compiled_call_modes, naming_the_forward_mode_fix
-from ._validation import check_time_span
+from ._validation import as_state_array, check_time_span
+from ._zeno import ZenoOptions, zeno_options
 
 
 def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
@@ -26,13 +28,11 @@ def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
     if not can_unroll(solver):
         return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
                 "Tsit5, Dopri5, Dopri8")
-    if not can_use_fast_controller(controller):
-        return (f"stepsize_controller {controller!r} is not a PIDController with default "
-                "coefficients, rms norm and no dtmin, dtmax, step_ts or jump_ts")
+    if not can_batch_controller(controller):
+        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm, "
+                "Python-number coefficients and no step_ts or jump_ts")
     if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
         return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
-    if system.completions:
-        return "Zeno completions are not supported by the batched engine yet"
     return None
 
 
@@ -94,7 +94,7 @@ def simulate_batch(
     event_tol: float | None = None,
     interior_points: int = 4,
     max_zero_epochs: int = 16,
-    zeno: bool = True,
+    zeno: bool | ZenoOptions = True,
     zeno_window: int = 3,
     zeno_ratio_tol: float = 0.05,
     zeno_max_ratio: float = 0.99,
@@ -112,8 +112,9 @@ def simulate_batch(
     batch), every execution advances one solver step per iteration with its own time, step
     size, mode and events, and the work only some executions need in an iteration (the
     epoch-start test, root location, resets) is done on those executions alone, gathered into
-    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a default
-    `PIDController`; `benchmarks/work_precision.py` measures it against `vmap(simulate)`.
+    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a `PIDController`
+    (any coefficients, `dtmin`, `dtmax`); `benchmarks/work_precision.py` measures it against
+    `vmap(simulate)`.
 
     **Arguments** (as `simulate`, except):
 
@@ -127,8 +128,8 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine: Zeno completions, implicit solvers, PID coefficients,
-      `dtmin`/`dtmax`/`step_ts`, `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
+      Not on the batched engine: implicit solvers, `step_ts`/`jump_ts`,
+      `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
     - `saveat`: as `simulate`; the same save times for every execution.
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
@@ -185,7 +186,7 @@ def simulate_batch(
     if lanes is not None and (not isinstance(lanes, (int, np.integer)) or lanes < 1):
         raise ValueError(f"lanes must be a positive integer (or None: the default), got {lanes!r}.")
     _check_block(block)
-    x0_arr = jnp.asarray(x0)
+    x0_arr = as_state_array(x0, "simulate_batch")
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
     N = x0_arr.shape[0]
@@ -206,6 +207,7 @@ def simulate_batch(
                 adjoint=adjoint)
     dtype, kind, checkpoints, solver_p, controller, event_tol_v = _checked_options(
         system, x0_arr[0], lane_args, **opts)
+    zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
     args = promote_args(args, dtype)
     per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
     refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
@@ -226,7 +228,7 @@ def simulate_batch(
     y0 = x0_arr.astype(dtype)
     save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
-    t1 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
+    t1, t1_before_t0 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
     # Reverse mode through `jax.shard_map` fails inside equinox's checkpointed loop: its closure
     # conversion compares the inputs' sharding metadata, which shard_map changes (equinox
@@ -256,8 +258,7 @@ def simulate_batch(
             solver=UnrolledERK(solver_p), controller=controller_, dt0=dt0,
             max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
             event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
-            zeno=dict(window=int(zeno_window), ratio_tol=float(zeno_ratio_tol),
-                      max_ratio=float(zeno_max_ratio)) if zeno else None,
+            zeno=zeno_opts,
             loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
             save_ts=save_ts_)
         final, rec = loop.run(t0, y0.T, m0)
@@ -275,7 +276,7 @@ def simulate_batch(
             out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
-    status = out.pop("status")
+    status = jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status"))
     return Solution(
         **out, status=as_status(status), ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape),
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,

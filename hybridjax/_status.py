@@ -49,6 +49,8 @@ class Status(eqx.Enumeration):
     NONFINITE = "A flow, guard or reset produced a non-finite value."
     STEP_COLLAPSE = ("The step size fell to the resolution of t with every value finite: the flow "
                      "blows up in finite time at `final_time`, or the tolerance cannot be met there.")
+    T1_BEFORE_T0 = ("t1 < t0: nothing was run. Known values of t0 and t1 raise a ValueError at the "
+                    "call; values traced inside `jax.jit` or `jax.vmap` end here instead.")
 
 
 STATUS_NAMES: tuple[str, ...] = (
@@ -60,6 +62,7 @@ STATUS_NAMES: tuple[str, ...] = (
     "MAX_STEPS",
     "NONFINITE",
     "STEP_COLLAPSE",
+    "T1_BEFORE_T0",
 )
 
 

@@ -331,7 +331,10 @@ class HybridSystem(eqx.Module):
         return tuple(k for k, s in enumerate(self.sources) if s == mode)
 
     def check(self, args: Any = None, dtype: Any = None) -> None:
-        """Run the shape checks with these `args` (raises ValueError naming the culprit)."""
+        """Run the shape checks with these `args` (raises ValueError naming the culprit).
+
+        Shapes only: `hj.check_properties` searches for blocking, overlapping guards and resets
+        into guards."""
         check_function_shapes(
             self, args, dtype=jnp.result_type(float) if dtype is None else dtype, strict=True
         )

@@ -4,36 +4,64 @@ Nothing here calls a user function on real data: `jax.eval_shape` traces it with
 arrays, so the checks are cheap and have no side effects.
 """
 
+import contextvars
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._eager import take_time_span_check
+# Set by `_eager.compiled_when_eager` around the trace of a call whose time span it checked.
+_TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", default=None)
+
+
+class _Ticket:
+    used: bool = False
+
+
+def take_time_span_check() -> bool:
+    """Whether t1 >= t0 was checked on concrete values at the call being traced, so that its
+    check needs no traced copy (and no host callback). True once per compiled call, for the
+    first check made in its trace: the call's own."""
+    ticket = _TIME_SPAN_CHECKED.get()
+    if ticket is None or ticket.used:
+        return False
+    ticket.used = True
+    return True
 
 
 class DefinitionError(ValueError):
     """A mode or transition of a `HybridSystem` is ill-defined (message names the culprit)."""
 
 
+def as_state_array(x0, where: str) -> jax.Array:
+    """`x0` as a JAX array, or a `TypeError` naming the argument when it is not numeric (most
+    often a mode name passed first: the order is `(system, x0, mode0, t0, t1, args)`)."""
+    if isinstance(x0, str) or (isinstance(x0, np.ndarray) and not np.issubdtype(x0.dtype, np.number)):
+        raise TypeError(f"{where}: x0 must be an array of numbers, got {x0!r}. The arguments are "
+                        f"{where}(system, x0, mode0, t0, t1, args): were x0 and mode0 swapped?")
+    return jnp.asarray(x0)
+
+
 def check_time_span(t0, t1, where: str, given: tuple):
-    """`t1` unchanged if t1 >= t0 (elementwise). `given`: (t0, t1) as the caller passed them;
-    known values are checked here, at the call (`ValueError`), traced ones inside the compiled
-    run (`eqx.error_if`). The check at the call keeps host callbacks out of the compiled
-    program: JAX's persistent compilation cache does not store programs that have them.
-    Inside a call compiled by `compiled_when_eager` the check was made at its call."""
-    msg = f"{where}: t1 must be >= t0."
+    """`(t1, before)`: t1 clamped to >= t0, and where t1 < t0 (elementwise).
+
+    `given`: (t0, t1) as the caller passed them. Known values are checked here, at the call
+    (a `ValueError` naming `where`). Traced ones (inside `jax.jit`, `jax.vmap` or a derivative
+    with respect to t0 or t1) cannot raise a readable error: the execution runs over the empty
+    span [t0, t0] and its status is set to `T1_BEFORE_T0` where `before` holds, one status per
+    execution, like every other stop. No host callback enters the program, which keeps it
+    cacheable by JAX's persistent compilation cache. Inside a call compiled by
+    `compiled_when_eager` the check was made at its call."""
     if take_time_span_check():
-        return t1
+        return t1, jnp.zeros(jnp.shape(t1), bool)
     try:
         bad = bool(np.any(np.asarray(given[1]) < np.asarray(given[0])))
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return eqx.error_if(t1, t1 < t0, msg)
+        return jnp.maximum(t1, t0), t1 < t0
     if bad:
-        raise ValueError(msg)
-    return t1
+        raise ValueError(f"{where}: t1 must be >= t0.")
+    return t1, jnp.zeros(jnp.shape(t1), bool)
 
 
 def _abstract_shape(fn, dim: int, args: Any, dtype) -> jax.ShapeDtypeStruct:

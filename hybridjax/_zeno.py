@@ -11,12 +11,62 @@ post-event states, x_inf = x_n + d_n rho / (1 - rho), rho = d_n / d_{n-1}, d_n =
 Reference: A. D. Ames, H. Zheng, R. D. Gregg, S. Sastry, "Is there life after Zeno?", ACC 2006.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 
+DEFAULT_WINDOW, DEFAULT_RATIO_TOL, DEFAULT_MAX_RATIO = 3, 0.05, 0.99
 
-def detect_zeno(recent_times, recent_states, t1, *, window: int, ratio_tol: float, max_ratio: float):
-    """(is_zeno, t_inf, x_inf) from the last `window + 2` event times and last 3 post-event
-    states, oldest first (inf where fewer events have happened)."""
+
+class ZenoOptions(eqx.Module):
+    r"""The settings of Zeno detection, in one object (`simulate(..., zeno=hj.ZenoOptions(...))`).
+
+    After each event, if the last `window` ratios $r = |T_{i+1}| / |T_i|$ of consecutive epoch
+    lengths lie in $(0, \text{max\_ratio}]$ and agree with the latest to `ratio_tol` (relative),
+    and the extrapolated accumulation time $t_\infty = t_n + |T_n| r / (1 - r)$ is $\le t_1$,
+    the execution stops with `ZENO`, or jumps to the limit through the mode's `ZenoCompletion`.
+    `zeno=True` is `ZenoOptions()`; `zeno=False` switches detection off. The keywords
+    `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio` of `simulate` set the same fields.
+
+    !!! Example
+
+        ```python
+        import hybridjax as hj, jax.numpy as jnp
+        ball = hj.examples.bouncing_ball()
+        sol = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, 5.0, {"g": 9.8, "e": 0.7},
+                          zeno=hj.ZenoOptions(window=4, ratio_tol=0.01))
+        sol.status_name, sol.zeno_time  # 'ZENO', sqrt(2 h0 / g) (1 + e) / (1 - e)
+        ```
+    """
+
+    window: int = eqx.field(static=True, default=DEFAULT_WINDOW)
+    ratio_tol: float = eqx.field(static=True, default=DEFAULT_RATIO_TOL)
+    max_ratio: float = eqx.field(static=True, default=DEFAULT_MAX_RATIO)
+
+    def __check_init__(self):
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise ValueError(f"ZenoOptions: window must be an int >= 1, got {self.window!r}.")
+        if not 0 < self.max_ratio < 1:
+            raise ValueError(f"ZenoOptions: max_ratio must be in (0, 1), got {self.max_ratio!r}.")
+        if not self.ratio_tol >= 0:
+            raise ValueError(f"ZenoOptions: ratio_tol must be >= 0, got {self.ratio_tol!r}.")
+
+
+def zeno_options(zeno, window=DEFAULT_WINDOW, ratio_tol=DEFAULT_RATIO_TOL,
+                 max_ratio=DEFAULT_MAX_RATIO) -> "ZenoOptions | None":
+    """The Zeno settings of a call: `zeno` itself if a `ZenoOptions`, None for `zeno=False`,
+    else the keywords' (`simulate`'s `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`)."""
+    if isinstance(zeno, ZenoOptions):
+        if (window, ratio_tol, max_ratio) != (DEFAULT_WINDOW, DEFAULT_RATIO_TOL, DEFAULT_MAX_RATIO):
+            raise ValueError("zeno=ZenoOptions(...) holds the Zeno settings: pass zeno_window, "
+                             "zeno_ratio_tol and zeno_max_ratio there, not beside it.")
+        return zeno
+    return ZenoOptions(int(window), float(ratio_tol), float(max_ratio)) if zeno else None
+
+
+def detect_zeno(recent_times, recent_states, t1, options: ZenoOptions):
+    """(is_zeno, t_inf, x_inf) from the last `options.window + 2` event times and last 3
+    post-event states, oldest first (inf where fewer events have happened)."""
+    ratio_tol, max_ratio = options.ratio_tol, options.max_ratio
     T = recent_times
     L = jnp.diff(T)
     ok = jnp.all(jnp.isfinite(T)) & jnp.all(L > 0)

@@ -295,7 +295,7 @@ with warnings.catch_warnings(record=True) as caught:
 print(caught[0].message if caught else "no warning")
 print(s32.status_name, "Zeno time", float(s32.zeno_time), "closed form", examples.zeno_time(1.0, 9.8, 0.8))"""),
     ],
-    "05_scenes": [
+    "06_scenes": [
         ("md", """# Scenes: contact systems from constraints
 
 A point of mass $m$ above a floor $a_G = z \\ge 0$ and a ramp $a_H = -x \\sin\\theta + z \\cos\\theta \\ge 0$ under
@@ -328,6 +328,118 @@ a2.set_xlabel("t"); a2.set_ylabel("contact force"); a2.legend(); plt.show()"""),
         ("md", """On the floor the force is $m g$; on the ramp it is $m g \\cos\\theta$ (the dotted line); in flight both are 0."""),
     ],
 }
+
+NOTEBOOKS["03_zeno_and_blocking"] += [
+    ("md", """## Checking a system before running it
+
+`hj.check_properties` looks for counterexamples to the properties of the chapter's section 3 (achievable
+transitions, disjoint guards, guards covering the boundary where the flow leaves a domain, resets into the target
+domain, resets into guards and zero-time cycles) by sampling each mode in the `bounds` given and refining the best
+samples by local least squares. Every finding comes with a witness state; a property reported as holding had no
+counterexample among the samples, which is not a proof. Here, the thermostat with its heater's switch-off
+threshold in `args`: at $s - 2$ it is `examples.thermostat()`."""),
+    ("code", """base = examples.thermostat()
+trs = list(base.transitions)
+trs[1] = hj.Transition("heat", "off", guard=lambda t, x, p: p["off_at"] - x[0], name="heat off")
+thermo = hj.HybridSystem(base.modes, trs)
+pth = {"a": 0.5, "T_amb": 10.0, "P_heat": 15.0, "P_cool": 10.0, "s": 20.0, "off_at": 18.0}
+bounds = {"off": (5.0, 35.0), "heat": (5.0, 35.0), "cool": (5.0, 35.0)}
+hj.check_properties(thermo, pth, bounds=bounds)"""),
+    ("md", """With the switch-off threshold at $s - 1 = 19$, above the heat domain $T \\le s - 2$, the boundary $T = 18$,
+where heating leaves the domain, is in no guard: the check reports the gap with its witness (the compiled searches
+are reused for the new `args`), and a simulation that heats from 17 °C ends `BLOCKED` there."""),
+    ("code", """gap = hj.check_properties(thermo, {**pth, "off_at": 19.0}, bounds=bounds)
+print(gap.nonblocking, gap.gaps)
+run = hj.simulate(thermo, jnp.array([17.0]), "heat", 0.0, 5.0, {**pth, "off_at": 19.0})
+print(run.status_name, "at T =", np.asarray(run.final_state))"""),
+    ("md", """Resets into guards are allowed (section 3.7) and reported as chains: the ball thrown at the ceiling
+lands, by its plastic impact, inside the lift-off guard; the chain has length two and there is no cycle."""),
+    ("code", """ceiling_report = hj.check_properties(examples.ceiling_ball(), {"g": 9.8, "H": 2.0},
+                                     bounds={"flight": (-5.0, 5.0), "contact": (-5.0, 5.0)})
+print(ceiling_report)"""),
+]
+
+NOTEBOOKS["05_trajectory_optimisation"] = [
+    ("md", """# Trajectory optimisation through impacts
+
+Shooting with optax (`hj.Shooting`, `hj.shoot`) and hybrid iLQR (`hj.hybrid_ilqr`): the cost against the
+iteration, the optimised executions, and the event sequence of each iterate. See the
+[Trajectory optimisation](../trajectory_optimisation.md) guide."""),
+    ("code", SETUP + "\nimport math, optax"),
+    ("md", """## Shooting: the k-th impact at a target
+
+A ball launched from the floor at angle $\\varphi$ with speed $v$ makes its $k$-th impact at
+$x_k = v^2 \\sin 2\\varphi\\,(1 - e^k) / (g (1 - e))$; the speed that puts it at $x^*$ is known in closed form.
+Three initial guesses, solved together."""),
+    ("code", """G, E, PHI, K, X_STAR = 9.8, 0.6, 0.9, 3, 4.0
+flight = hj.Mode("flight", lambda t, s, a: jnp.stack([s[2], s[3], 0.0 * s[2], -a["g"] + 0.0 * s[3]]), dim=4)
+bounce = hj.Transition("flight", "flight", guard=lambda t, s, a: s[1],
+                       reset=lambda t, s, a: s.at[3].multiply(-a["e"]), name="bounce")
+ball = hj.HybridSystem([flight], [bounce])
+args = {"g": jnp.asarray(G), "e": jnp.asarray(E)}
+launch = lambda v: jnp.stack([0.0 * v, 0.0 * v, v * math.cos(PHI), v * math.sin(PHI)])
+tight = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+problem = hj.Shooting(ball, lambda v, sol: (sol.states_before[K - 1, 0] / X_STAR - 1) ** 2, x0=launch,
+                      mode0="flight", t1=20.0, args=args, max_epochs=K, stepsize_controller=tight)
+result = hj.shoot(problem, jnp.array([3.0, 4.0, 6.0]), optax.sgd(1.5), steps=30, batched=True)
+v_star = math.sqrt(X_STAR * G * (1 - E) / (math.sin(2 * PHI) * (1 - E ** K)))
+print("closed form", v_star, " found", np.asarray(result.params))
+
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+for i in range(3):
+    a1.semilogy(np.asarray(result.costs[i]) + 1e-32, label=f"guess {float(result.params_history[i, 0]):.0f}")
+a1.set(xlabel="iteration", ylabel="cost"); a1.legend()
+ts = jnp.linspace(0, 2.0, 400)
+for v in (3.0, float(result.params[0])):
+    s = hj.simulate(ball, launch(jnp.asarray(v)), "flight", 0.0, 2.0, args, saveat=ts, stepsize_controller=tight)
+    a2.plot(s.ys[:, 0], s.ys[:, 1], label=f"v = {v:.3f}")
+a2.axvline(X_STAR, color="gray", ls=":"); a2.set(xlabel="x", ylabel="h", xlim=(0, 5)); a2.legend(); plt.show()"""),
+    ("md", """## The event sequence of each iterate
+
+The ball's position at $t_1 = 2$ is fixed, whatever its bounces; its speed decides how many bounces happen
+before $t_1$. Unconstrained, the iterates go from two bounces to one (`sequence_changed`); with exactly two
+required (`transitions=(0, 0)`), steps are halved to stay there and the iterates stop on the boundary."""),
+    ("code", """X_T1 = 9.0 * math.cos(PHI) * 2.0
+def reach(transitions=None):
+    return hj.Shooting(ball, lambda v, sol: (sol.final_state[0] / X_T1 - 1) ** 2, x0=launch, mode0="flight",
+                       t1=2.0, args=args, max_epochs=4, transitions=transitions, max_backtracks=40,
+                       stepsize_controller=tight)
+sgd = optax.sgd(0.45 * 81)
+free = hj.shoot(reach(), jnp.asarray(7.0), sgd, steps=12)
+two = hj.shoot(reach((0, 0)), jnp.asarray(7.0), sgd, steps=12)
+print("sequence changed at iterates", free.changes)
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+a1.plot(np.asarray(free.params_history), "o-", label="free"); a1.plot(np.asarray(two.params_history), "s-", label="exactly 2 bounces")
+a1.set(xlabel="iteration", ylabel="speed v"); a1.legend()
+a2.step(range(13), np.asarray(free.num_events), where="mid", label="free"); a2.step(range(13), np.asarray(two.num_events), where="mid", label="exactly 2 bounces")
+a2.set(xlabel="iteration", ylabel="bounces before t1"); a2.legend(); plt.show()"""),
+    ("md", """## Hybrid iLQR: tracking a bouncing reference
+
+The ball with a vertical thrust $u$ on 20 intervals over $[0, 1]$ tracks the passive ball (impact at
+0.4518) from $u = 2.5$ (impact at 0.5234, one interval later). The backward pass crosses the impact with its
+saltation matrix; the reference extension compares states of the same epoch while the impact moves back."""),
+    ("code", """from hybridjax._ilqr import _initial
+thrust_ball = hj.HybridSystem(
+    [hj.Mode("flight", lambda t, x, a: jnp.stack([x[1], -a["g"] + a["u"][0]]), dim=2)],
+    [hj.Transition("flight", "flight", guard=lambda t, x, a: x[0],
+                   reset=lambda t, x, a: x.at[1].multiply(-a["e"]), name="bounce")])
+grid = jnp.linspace(0, 1, 21)
+cargs = lambda u: {"g": 9.8, "e": 0.8, "u": u}
+Q = jnp.diag(jnp.array([10.0, 1.0]))
+x0 = jnp.array([1.0, 0.0])
+reference = _initial(hj.HybridLQRProblem(thrust_ball, cargs, x0, "flight", grid, jnp.zeros((21, 2)), Q, 1e-3, 10 * Q),
+                     jnp.zeros((20, 1))).xs
+lqr = hj.HybridLQRProblem(thrust_ball, cargs, x0, "flight", grid, reference, Q, 1e-3, 10 * Q)
+u0 = jnp.full((20, 1), 2.5)
+res = hj.hybrid_ilqr(lqr, u0, iterations=8)
+first = _initial(lqr, u0)
+print("costs", np.asarray(res.costs))
+print("impact interval per iterate", [int(np.flatnonzero(np.isfinite(np.asarray(t[:, 0])))[0]) for t in res.event_times])
+fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+a1.semilogy(np.asarray(res.costs) + 1e-32, "o-"); a1.set(xlabel="iteration", ylabel="cost")
+a2.plot(grid, reference[:, 0], "k-", label="reference"); a2.plot(grid, first.xs[:, 0], "--", label="initial u = 2.5")
+a2.plot(grid, res.states[:, 0], ".", label="iLQR"); a2.set(xlabel="t", ylabel="h"); a2.legend(); plt.show()"""),
+]
 
 
 def build(name: str, cells, execute: bool = True) -> float:

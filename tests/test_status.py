@@ -145,10 +145,9 @@ def test_t1_before_t0_is_refused_at_the_call(name):
 
 
 @pytest.mark.parametrize("name", RUNS)
-def test_known_times_keep_host_callbacks_out_of_the_program(name):
-    # JAX's persistent compilation cache does not store programs with host callbacks; with t0
-    # and t1 known at the call, their check is done there, and only traced ones are checked
-    # inside the run (`eqx.error_if`, a host callback).
+def test_no_host_callback_in_the_program_whether_times_are_known_or_traced(name):
+    # JAX's persistent compilation cache does not store programs with host callbacks; known
+    # t0 and t1 are checked at the call, and traced ones end with a status instead of raising.
     run, x0 = RUNS[name]
 
     def program(traced_t1: bool) -> str:
@@ -157,4 +156,28 @@ def test_known_times_keep_host_callbacks_out_of_the_program(name):
         return jax.jit(f).lower(x0, 1.0).as_text()
 
     assert "callback" not in program(traced_t1=False)
-    assert "callback" in program(traced_t1=True)
+    assert "callback" not in program(traced_t1=True)
+
+
+def test_traced_t1_before_t0_ends_that_execution_with_its_own_status():
+    # t1 = -1 and t1 = 1 in one vmapped batch, inside jax.jit: the first is refused with
+    # T1_BEFORE_T0 at (t0, x0), the second runs to t1 through its first impact at
+    # sqrt(2 h0 / g) = 0.4518 s, in both engines.
+    x0 = jnp.array([1.0, 0.0])
+    t1s = jnp.array([-1.0, 1.0])
+    one = jax.jit(jax.vmap(lambda t1: hj.simulate(BALL, x0, "flight", 0.0, t1, BALL_ARGS)))(t1s)
+    batch = jax.jit(lambda t1: hj.simulate_batch(BALL, jnp.stack([x0, x0]), "flight", 0.0, t1,
+                                                 BALL_ARGS))(t1s)
+    for sol in (one, batch):
+        assert np.asarray(sol.status).tolist() == [int(hj.Status.T1_BEFORE_T0), int(hj.Status.T1_REACHED)]
+        np.testing.assert_array_equal(np.asarray(sol.final_time), [0.0, 1.0])
+        np.testing.assert_array_equal(np.asarray(sol.final_state[0]), x0)
+        np.testing.assert_array_equal(np.asarray(sol.num_events), [0, 1])
+        np.testing.assert_allclose(float(sol.event_times[1, 0]), np.sqrt(2 / 9.8), rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", RUNS)
+def test_a_mode_name_given_as_x0_is_named_in_the_error(name):
+    run, x0 = RUNS[name]
+    with pytest.raises(TypeError, match=f"{name}: x0 must be an array of numbers, got 'flight'.*swapped"):
+        run(BALL, "flight", x0, 0.0, 1.0, BALL_ARGS)

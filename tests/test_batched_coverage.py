@@ -1,0 +1,101 @@
+"""`simulate_batch` runs its own engine (`engine="batched"` refuses to fall back to
+`jax.vmap(simulate)`) for what the per-execution engine does: Zeno completions, and every
+option of diffrax's `PIDController` but step_ts / jump_ts."""
+
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+from hybridjax import examples
+
+from helpers import BALL, TIGHT
+
+REST = hj.Mode("rest", lambda t, x, p: jnp.zeros_like(x), dim=1)
+COMPLETED = hj.HybridSystem(
+    [BALL.modes[0], REST],
+    BALL.transitions,
+    completions=[hj.ZenoCompletion("flight", "rest", reset=lambda t, x, p: x[:1])],
+)
+X0 = jnp.array([[1.0, 0.0], [0.5, 0.0], [2.0, -1.0]])
+E = jnp.array([1 / math.sqrt(2), 0.5, 0.6])
+ARGS = {"g": jnp.full(3, 9.8), "e": E}
+
+
+def test_zeno_completions_in_the_batched_engine():
+    kw = dict(stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 4.0, 9), args_batched=True)
+    got = hj.simulate_batch(COMPLETED, X0, "flight", 0.0, 4.0, ARGS, engine="batched", **kw)
+    assert list(got.status_name) == ["T1_REACHED"] * 3
+    K = COMPLETED.num_transitions
+    for i in range(3):
+        n = int(got.num_events[i])
+        assert int(got.transitions[i, n - 1]) == K  # the completion, the last event
+        assert COMPLETED.mode_names[int(got.final_mode[i])] == "rest"
+        assert abs(float(got.final_state[i, 0])) < 1e-6
+    # dropped from rest: t_inf = sqrt(2 h0 / g) (1 + e) / (1 - e)
+    for i in (0, 1):
+        want = examples.zeno_time(float(X0[i, 0]), 9.8, float(E[i]))
+        np.testing.assert_allclose(got.zeno_time[i], want, atol=1e-6)
+        np.testing.assert_allclose(got.event_times[i, int(got.num_events[i]) - 1], want, atol=1e-6)
+    # the per-execution engine, a second method, on every field
+    want = hj.simulate_batch(COMPLETED, X0, "flight", 0.0, 4.0, ARGS, engine="vmap", **kw)
+    np.testing.assert_array_equal(got.num_events, want.num_events)
+    np.testing.assert_array_equal(got.transitions, want.transitions)
+    np.testing.assert_array_equal(got.epoch_modes, want.epoch_modes)
+    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+    np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-10)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-9)
+
+
+def test_zeno_completion_gradient_in_the_batched_engine():
+    # d t_inf / d h0 = (1 + e) / (1 - e) / sqrt(2 g h0), for a ball dropped from rest
+    def total(h0):
+        x0 = jnp.stack([h0, jnp.zeros(3)], 1)
+        return hj.simulate_batch(
+            COMPLETED,
+            x0,
+            "flight",
+            0.0,
+            4.0,
+            ARGS,
+            engine="batched",
+            stepsize_controller=TIGHT,
+            args_batched=True,
+        ).zeno_time.sum()
+
+    h0 = jnp.array([1.0, 0.5, 2.0])
+    g = jax.grad(total)(h0)
+    want = (1 + E) / (1 - E) / jnp.sqrt(2 * 9.8 * h0)
+    np.testing.assert_allclose(g, want, rtol=1e-6)
+
+
+# Van der Pol with relay: the step size varies over orders of magnitude, so the controller's
+# history, bounds and rejections all act.
+@pytest.mark.parametrize(
+    "controller",
+    [
+        diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.3, icoeff=0.4, dtmax=0.05),
+        diffrax.PIDController(
+            rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dcoeff=0.1, dtmin=1e-2, force_dtmin=True
+        ),
+    ],
+    ids=["PI, dtmax", "PID, dtmin"],
+)
+def test_pid_options_in_the_batched_engine(controller):
+    vdp = examples.van_der_pol_relay()
+    x0 = jnp.array([[-1.0, 0.5], [0.2, -1.0], [-1.5, 1.5]])
+    got, want = (
+        hj.simulate_batch(vdp, x0, 0, 0.0, 10.0, 5.0, stepsize_controller=controller, engine=engine)
+        for engine in ("batched", "vmap")
+    )
+    # The same rule as diffrax's own controller (in `jax.vmap(simulate)`): the same steps.
+    np.testing.assert_array_equal(got.num_steps, want.num_steps)
+    np.testing.assert_array_equal(got.num_rejected, want.num_rejected)
+    assert int(np.min(got.num_rejected)) > 0
+    np.testing.assert_array_equal(got.num_events, want.num_events)
+    np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-11)
+    np.testing.assert_allclose(got.final_state, want.final_state, rtol=1e-9, atol=1e-11)

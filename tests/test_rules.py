@@ -1,0 +1,382 @@
+"""Each execution rule (`hybridjax._rules`) alone, against cases derived by hand in the tests.
+
+The engines call these functions (the per-execution loop directly, the batched loop lifted over
+its lanes); `tests/test_architecture.py` checks that both do. Whole runs are tested elsewhere.
+"""
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hybridjax import _rules as R
+from hybridjax import examples
+from hybridjax._fast_rk import (
+    PIDState,
+    UnrolledERK,
+    explicit_rk_step,
+    pid_controller,
+    rk_error_estimate,
+    scaled_error,
+)
+from hybridjax._kernels import GuardJets, Kernels
+from hybridjax._status import Status
+
+EPS = float(np.finfo(np.float64).eps)
+BALL_KERN = Kernels(examples.bouncing_ball(), {"g": 9.8, "e": 0.8}, jnp.float64)
+G = 9.8
+
+
+def _jets(L0, L1, L2=0.0, L3=0.0, band=1e-6, scale1=1.0):
+    def arr(v):
+        return jnp.broadcast_to(jnp.asarray(v, jnp.float64), jnp.shape(jnp.asarray(L0)))
+
+    return GuardJets(*(arr(v) for v in (L0, L1, L2, L3, band, scale1)))
+
+
+# ---------------------------------------------------------------------------- tolerances
+def test_event_time_tol_is_relative_to_the_step_floored_at_8_ulp_of_t():
+    # max(1e-12 * 0.5, 8 eps 10) = 5e-13; max(1e-12 * 1e-3, 8 eps 1e6) = 8 eps 1e6
+    assert float(R.event_time_tol(1e-12, 10.0, 0.5, EPS)) == pytest.approx(5e-13, rel=1e-15)
+    assert float(R.event_time_tol(1e-12, 1e6, 1e-3, EPS)) == pytest.approx(8 * EPS * 1e6, rel=1e-15)
+    assert float(R.event_time_tol(1e-12, 3.0, -0.5, EPS)) == pytest.approx(5e-13, rel=1e-15)
+
+
+def test_step_end_moves_t_by_at_least_one_ulp_and_stops_at_t1():
+    one = jnp.asarray(1.0)
+    assert float(R.step_end(one, 0.5, 10.0)) == 1.5
+    assert float(R.step_end(one, 0.0, 10.0)) == np.nextafter(1.0, 2.0)
+    assert float(R.step_end(one, 1e-300, 10.0)) == np.nextafter(1.0, 2.0)
+    assert float(R.step_end(jnp.asarray(9.8), 1.0, 10.0)) == 10.0
+
+
+# ---------------------------------------------------------------------------- start of an epoch
+def test_trending_negative_reads_the_first_nonzero_lie_derivative():
+    tn = lambda *a: bool(R.trending_negative(*(jnp.asarray(x) for x in a), EPS))  # noqa: E731
+    assert tn(-1.0, 5.0, 5.0, 1.0)  # L1 < 0
+    assert not tn(1.0, -5.0, -5.0, 1.0)  # L1 > 0 decides
+    assert tn(0.0, -1.0, 5.0, 1.0)  # L1 = 0, L2 < 0
+    assert tn(0.0, 0.0, -1.0, 1.0)  # L1 = L2 = 0, L3 < 0
+    # |L1| = 1e-20 is below 64 eps scale1 (1.4e-14): cancellation, so L2 > 0 decides
+    assert not tn(-1e-20, 2.0, 0.0, 1.0)
+    assert tn(-1e-12, 2.0, 0.0, 1.0)  # above it: L1 decides
+
+
+def test_start_decision_fires_inside_or_trending_in_and_disarms_departing_guards():
+    # inside (L0 < -band), in the band and falling, in the band and leaving, positive
+    jets = _jets([-1.0, 0.0, 0.0, 0.5], [0.0, -1.0, 1.0, -1.0])
+    fire, g_start = R.start_decision(jets, jnp.array([True, True, True, True]), EPS)
+    np.testing.assert_array_equal(fire, [True, True, False, False])
+    np.testing.assert_array_equal(g_start, [0.0, 0.0, 0.0, 0.5])  # disarmed: 0; leaving: 0
+    np.testing.assert_array_equal(R.strictly_inside(jets), [True, False, False, False])
+    # a guard of another mode never fires and starts at +1
+    fire, g_start = R.start_decision(jets, jnp.array([False, True, True, True]), EPS)
+    assert not bool(fire[0]) and float(g_start[0]) == 1.0
+
+
+def test_departure_step_bound_is_the_return_time_halved():
+    # g(s) = L1 s + L2 s^2 / 2 returns to 0 at s = 2 L1 / |L2| = 1.0; half of it: 0.5
+    jets = _jets([0.0, 0.0], [2.0, 2.0], [-4.0, -4.0])
+    assert float(R.departure_step_bound(jets, jnp.array([True, False]), jnp.array([False, False]))) == 0.5
+    # not departing (not outgoing, or firing): no bound
+    assert float(R.departure_step_bound(jets, jnp.array([False, False]), jnp.array([False, False]))) == np.inf
+    assert float(R.departure_step_bound(jets, jnp.array([True, True]), jnp.array([True, True]))) == np.inf
+
+
+def test_first_step_carries_the_proposal_only_when_asked():
+    assert R.carries_step(None, True) and not R.carries_step(0.1, True) and not R.carries_step(None, False)
+    assert float(R.first_step(0.01, 0.1, True)) == 0.1
+    assert float(R.first_step(0.01, 0.0, True)) == 0.01  # the first epoch: no proposal yet
+    assert float(R.first_step(0.01, 0.1, False)) == 0.01
+
+
+def test_epoch_start_of_the_ball_on_the_floor():
+    # The guard h with flow (v, -g): L0 = h, L1 = v, L2 = -g.
+    def start(h, v, initial=1.0):
+        return R.epoch_start(
+            BALL_KERN,
+            jnp.asarray(0),
+            jnp.asarray(0.0),
+            jnp.array([h, v]),
+            {"g": G, "e": 0.8},
+            jnp.asarray(0.0),
+            jnp.asarray(initial),
+            carry=False,
+            rtol=1e-8,
+            atol=1e-8,
+            event_tol=1e-12,
+            eps=EPS,
+        )
+
+    falling = start(0.0, -1.0)
+    assert bool(falling.fire) and int(falling.k) == 0 and not bool(falling.inside)
+    assert not bool(falling.simultaneous) and bool(falling.finite)
+    np.testing.assert_array_equal(falling.F, [-1.0, -G])
+    leaving = start(0.0, 0.98)
+    # departing: disarmed, and the first step capped at v / g = 0.1 (half the flight 2 v / g)
+    assert not bool(leaving.fire) and float(leaving.g_start[0]) == 0.0
+    assert float(leaving.h) == pytest.approx(0.98 / G, rel=1e-15)
+    high = start(1.0, 0.0, initial=0.25)
+    assert not bool(high.fire) and float(high.g_start[0]) == 1.0 and float(high.h) == 0.25
+
+
+# ---------------------------------------------------------------------------- a step
+def test_nonfinite_step_shrinks_by_four_then_stops_at_the_resolution_of_t():
+    out = R.nonfinite_step(jnp.array(True), jnp.array(True), 0.3, 0.1, 1.0, EPS)
+    assert bool(out.finite) and float(out.next_h) == 0.3 and not bool(out.stuck)
+    out = R.nonfinite_step(jnp.array(False), jnp.array(True), 0.3, 0.1, 1.0, EPS)
+    assert not bool(out.finite) and float(out.next_h) == 0.025 and not bool(out.stuck)
+    # h = 1e-16 <= 64 eps max(|t|, h) = 1.4e-14: nothing left to shrink
+    assert bool(R.nonfinite_step(jnp.array(True), jnp.array(False), 0.3, 1e-16, 1.0, EPS).stuck)
+
+
+def test_step_stops_precedence():
+    # next_h = 1e-16 <= 16 eps |t| = 3.6e-15 at t = 1: collapsed (when finite)
+    assert bool(R.step_collapsed(jnp.array(True), 1e-16, 1.0, EPS))
+    assert not bool(R.step_collapsed(jnp.array(False), 1e-16, 1.0, EPS))
+    assert not bool(R.step_collapsed(jnp.array(True), 1e-13, 1.0, EPS))
+    stops = R.step_stops(jnp.array(True), jnp.array(True), 1e-16, 1.0, EPS, 10, 10)
+    assert [s for _, s in stops] == [Status.NONFINITE, Status.STEP_COLLAPSE, Status.MAX_STEPS]
+    done, code = R.stop_first(jnp.array(False), jnp.asarray(0, jnp.int32), *stops)
+    assert bool(done) and int(code) == int(Status.NONFINITE)  # all three hold: the first wins
+    done, code = R.stop_first(
+        jnp.array(False),
+        jnp.asarray(0, jnp.int32),
+        *R.step_stops(jnp.array(False), jnp.array(True), 0.5, 1.0, EPS, 10, 10),
+    )
+    assert int(code) == int(Status.MAX_STEPS)
+
+
+def test_stop_first_keeps_the_status_of_a_finished_execution():
+    done, code = R.stop_first(
+        jnp.array(True), jnp.asarray(int(Status.BLOCKED), jnp.int32), (jnp.array(True), Status.NONFINITE)
+    )
+    assert bool(done) and int(code) == int(Status.BLOCKED)
+    done, code = R.stop_first(jnp.array(False), jnp.asarray(0, jnp.int32), (jnp.array(False), Status.ZENO))
+    assert not bool(done) and int(code) == 0
+
+
+# ---------------------------------------------------------------------------- detection
+def test_crossing_and_first_crossings():
+    assert bool(R.crossing(1.0, 0.0)) and bool(R.crossing(1.0, -1.0))
+    assert not bool(R.crossing(0.0, -1.0)) and not bool(R.crossing(-1.0, 1.0))
+    has, j = R.first_crossings(jnp.array([1.0, 1.0, 1.0]), jnp.array([[0.5, -1.0, 2.0], [-0.5, -2.0, 3.0]]))
+    np.testing.assert_array_equal(has, [True, True, False])
+    np.testing.assert_array_equal(j[:2], [1, 0])
+
+
+def test_dip_interval_from_the_end_tangents():
+    # g(s) = (s - 0.5)^2 + c on [0, 1]: V = 0.25 + c at both ends, D = -1, +1. The tangents
+    # meet at u = (V1 - V0 - D1 h) / (D0 - D1) = 0.5, where the left one is V0 - 0.5 = c - 0.25.
+    for c, cand in ((-0.01, True), (0.3, False), (0.25, True)):
+        cross, is_cand, u = R.dip_interval(0.25 + c, 0.25 + c, -1.0, 1.0, 1.0)
+        assert not bool(cross) and bool(is_cand) == cand and float(u) == 0.5
+    # no minimum inside (slopes of one sign), or a sign change: not a dip
+    assert not bool(R.dip_interval(0.3, 0.2, -1.0, -0.5, 1.0)[1])
+    assert bool(R.dip_interval(0.3, -0.2, -1.0, 1.0, 1.0)[0])
+    # a non-finite slope reads 0: no dip
+    assert not bool(R.dip_interval(0.3, 0.3, np.nan, 1.0, 1.0)[1])
+
+
+def test_dip_candidates_and_filter():
+    # g(s) = (s - 1.5)^2 - 0.01 sampled at s = 0, 1, 2: values 2.24, 0.24, 0.24, slopes
+    # -3, -1, 1; the second interval is a candidate, the tangents meeting at s = 1.5.
+    s = jnp.array([0.0, 1.0, 2.0])
+    V, D = (s - 1.5) ** 2 - 0.01, 2 * (s - 1.5)
+    suspect, i, x0 = R.dip_candidates(V[:, None], D[:, None], s)
+    assert bool(suspect[0]) and int(i[0]) == 1 and float(x0[0]) == 1.5
+    t, f = jnp.array(True), jnp.array(False)
+    assert bool(R.dip_filter(t, jnp.array(2), t, jnp.array(1)))  # before the crossing
+    assert not bool(R.dip_filter(t, jnp.array(1), t, jnp.array(1)))  # not before it
+    assert bool(R.dip_filter(f, jnp.array(0), t, jnp.array(3)))  # no crossing
+
+
+# ---------------------------------------------------------------------------- location
+def test_locate_root_brackets_the_root_from_the_right():
+    r = float(R.locate_root(lambda x: 2.0 - x * x, jnp.asarray(1.0), jnp.asarray(2.0), 1e-12))
+    assert 0.0 <= r - math.sqrt(2.0) <= 1e-12 and 2.0 - r * r <= 0.0
+
+
+def test_locate_minimum():
+    x, f = R.locate_minimum(
+        lambda x: (x - 0.3) ** 2 + 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12
+    )
+    assert float(x) == pytest.approx(0.3, abs=1e-8) and float(f) == pytest.approx(0.1, abs=1e-15)
+    x, f = R.locate_minimum(
+        lambda x: (x - 0.3) ** 2 - 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12
+    )
+    assert float(f) < 0.0 and (float(x) - 0.3) ** 2 < 0.1  # a point inside, found early
+
+
+def test_event_brackets_turn_a_dip_into_a_bracket():
+    # g = (x - 1.5)^2 - 0.01 dips below 0 between the samples 1 and 2 (roots 1.4 and 1.6);
+    # the minimum search from 1.5 finds g < 0 at once, so the bracket is [1, 1.5].
+    def values_at(x):
+        return jnp.stack([(x - 1.5) ** 2 - 0.01])
+
+    det = R.Detection(jnp.array([False]), jnp.array([0]), jnp.array([True]), jnp.array([1]), jnp.array([1.5]))
+    br = R.event_brackets(values_at, det, jnp.array([0.0, 1.0, 2.0]), 1e-12)
+    assert bool(br.has[0]) and float(br.a[0]) == 1.0 and float(br.b[0]) == 1.5
+    ev = R.first_event(values_at, br, 1e-12, jnp.asarray(2.0))
+    assert float(ev.t_star) == pytest.approx(1.4, abs=1e-12) and int(ev.index) == 0
+
+
+def _first_event_of(*offsets, has=None):
+    # Guards 1 + o - x, crossing at 1 + o, each bracketed by [0, 2].
+    o = jnp.asarray(offsets)
+    has = jnp.ones(o.shape, bool) if has is None else jnp.asarray(has)
+    br = R.Brackets(has, jnp.zeros(o.shape), jnp.full(o.shape, 2.0))
+    return R.first_event(lambda x: 1.0 + o - x, br, 1e-12, jnp.asarray(2.0))
+
+
+def test_first_event_and_the_simultaneity_rule():
+    ev = _first_event_of(0.3, 0.0, 0.5)
+    assert int(ev.index) == 1 and not bool(ev.simultaneous)
+    assert 0.0 <= float(ev.t_star) - 1.0 <= 1e-12
+    # reached within the event-time tolerance: simultaneous, the first listed fires
+    ev = _first_event_of(1e-14, 0.0, 0.5)
+    assert int(ev.index) == 0 and bool(ev.simultaneous)
+    # outside it: not simultaneous
+    assert not bool(_first_event_of(1e-9, 0.0).simultaneous)
+    # a guard without a bracket of its own that is <= 0 at t_min and was > 0 at the start of
+    # the earliest bracket is simultaneous too
+    ev = _first_event_of(0.0, 0.0, has=[False, True])
+    assert int(ev.index) == 0 and bool(ev.simultaneous)
+    # no event: the step's end
+    ev = _first_event_of(0.0, has=[False])
+    assert float(ev.t_star) == 2.0 and int(ev.index) == 0 and not bool(ev.simultaneous)
+
+
+class _FreeFall(eqx.Module):
+    """The ball's exact dense output from (h0, v0) at t0: h0 + v0 s - g s^2 / 2, s = t - t0."""
+
+    t0: jax.Array
+    h0: jax.Array
+    v0: jax.Array
+
+    def evaluate(self, t):
+        s = t - self.t0
+        return jnp.stack([self.h0 + self.v0 * s - 0.5 * G * s * s, self.v0 - G * s])
+
+
+def test_event_point_derivatives_by_the_implicit_function_theorem():
+    # Dropped from h0 at t0: t* = t0 + sqrt(2 h0 / g), so dt*/dh0 = 1 / (g sqrt(2 h0 / g)) and
+    # dt*/dt0 = 1 (an autonomous flow and guard: one-for-one).
+    def t_event(h0, t0):
+        fall = _FreeFall(t0, h0, jnp.asarray(0.0))
+        t_star = jax.lax.stop_gradient(t0 + jnp.sqrt(2 * h0 / G))
+        t_ev, y_before, grazing = R.event_point(
+            BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, fall, {"g": G, "e": 0.8}
+        )
+        return t_ev, (y_before, grazing)
+
+    h0, t0 = jnp.asarray(1.0), jnp.asarray(0.5)
+    (d_h0, d_t0), (y_before, grazing) = jax.grad(t_event, argnums=(0, 1), has_aux=True)(h0, t0)
+    assert float(d_h0) == pytest.approx(1 / (G * math.sqrt(2 / G)), rel=1e-12)
+    assert float(d_t0) == pytest.approx(1.0, rel=1e-12)
+    np.testing.assert_allclose(y_before, [0.0, -math.sqrt(2 * G)], atol=1e-12)
+    assert not bool(grazing)
+    # at rest on the guard, the flow is tangent to it: grazing
+    _, (_, grazing) = t_event(jnp.asarray(0.0), t0)
+    assert bool(grazing)
+
+
+# ---------------------------------------------------------------------------- the jump
+def test_blocks_is_a_domain_component_first():
+    assert bool(R.blocks(jnp.asarray(2), 2)) and not bool(R.blocks(jnp.asarray(1), 2))
+
+
+def test_jump_outcome():
+    ok = R.jump_outcome(jnp.asarray(2), 3, jnp.array([1.0, 2.0]), jnp.array(False), jnp.asarray(5), 16)
+    assert bool(ok.recorded) and bool(ok.applied) and int(ok.zero_run) == 0
+    assert not any(bool(p) for p, _ in ok.stops)
+    full = R.jump_outcome(jnp.asarray(3), 3, jnp.array([1.0, 2.0]), jnp.array(False), jnp.asarray(0), 16)
+    assert not bool(full.recorded) and not bool(full.applied)
+    assert [s for p, s in full.stops if bool(p)] == [Status.MAX_EPOCHS]
+    bad = R.jump_outcome(jnp.asarray(0), 3, jnp.array([1.0, np.nan]), jnp.array(False), jnp.asarray(0), 16)
+    assert bool(bad.recorded) and not bool(bad.applied)
+    assert [s for p, s in bad.stops if bool(p)] == [Status.NONFINITE]
+    # the 17th zero-length epoch in a row with max_zero_epochs = 16
+    chat = R.jump_outcome(jnp.asarray(0), 3, jnp.array([1.0, 2.0]), jnp.array(True), jnp.asarray(16), 16)
+    assert int(chat.zero_run) == 17 and [s for p, s in chat.stops if bool(p)] == [Status.CHATTERING]
+    # lanes last: finiteness over the leading (component) axis
+    lanes = R.jump_outcome(
+        jnp.array([0, 0]), 3, jnp.array([[1.0, 1.0], [2.0, np.inf]]), jnp.array(False), jnp.array([0, 0]), 16
+    )
+    np.testing.assert_array_equal(lanes.applied, [True, False])
+
+
+def test_push_recent_and_saved_in_step():
+    np.testing.assert_array_equal(
+        R.push_recent(jnp.array([np.inf, 1.0, 2.0]), jnp.asarray(3.0)), [1.0, 2.0, 3.0]
+    )
+    np.testing.assert_array_equal(R.push_recent(jnp.zeros((2, 2)), jnp.ones(2)), [[0.0, 0.0], [1.0, 1.0]])
+    # (t, t_end] = (1, 1.5]
+    np.testing.assert_array_equal(
+        R.saved_in_step(jnp.array([0.5, 1.0, 1.25, 1.5, 2.0]), 1.0, 1.5), [False, False, True, True, False]
+    )
+
+
+# ---------------------------------------------------------------------------- the step
+def test_explicit_rk_step_of_heun_on_exponential_growth():
+    # Heun on y' = y: k1 = h y0, k2 = h (y0 + k1), y1 = y0 + (k1 + k2) / 2 = y0 (1 + h + h^2 / 2);
+    # error estimate (b - b_err) . k = (k1 - k2) / 2 up to sign = -h^2 y0 / 2.
+    tab = UnrolledERK(diffrax.Heun())
+    y0, h = jnp.array([2.0]), 0.1
+
+    def field(t, y, scale):
+        return y if scale is None else y * scale
+
+    y1, ks, f_last = explicit_rk_step(tab, field, 0.0, y0, h, y0)
+    np.testing.assert_allclose(y1, 2.0 * (1 + h + h * h / 2), rtol=1e-15)
+    np.testing.assert_allclose(f_last, 2.0 * (1 + h), rtol=1e-15)  # F at the last stage
+    np.testing.assert_allclose(jnp.abs(rk_error_estimate(tab, ks, y0)), h * h * 2.0 / 2, rtol=1e-13)
+
+
+def test_scaled_error_and_the_step_size_rule():
+    # err / (atol + rtol max|y|) = (3e-6 / 1e-6, 4e-6 / 2e-6) = (3, 2): e = sqrt((9 + 4) / 2)
+    e = scaled_error(jnp.array([0.0, 1.0]), jnp.array([0.0, -1.0]), jnp.array([3e-6, 4e-6]), 1e-6, 1e-6)
+    assert float(e) == pytest.approx(math.sqrt(6.5), rel=1e-14)
+    # a NaN in y1 reads y0 in the scale; lanes last: one e per column
+    e = scaled_error(
+        jnp.ones((2, 2)), jnp.array([[np.nan, 1.0], [1.0, 1.0]]), jnp.full((2, 2), 2e-6), 0.0, 1e-6
+    )
+    np.testing.assert_allclose(e, [2.0, 2.0], rtol=1e-14)
+    # The I controller (safety 0.9, factors in [0.2, 10]), q = 5: e = 1/32 gives 0.9 * 2 = 1.8
+    # (kept); e = 32 gives 0.9 / 2 = 0.45 (rejected, in [0.2, 0.9]); the bounds clip the others.
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6)
+    one = jnp.ones(4)
+    state = PIDState(one, one, jnp.zeros(4, bool))
+    keep, h_next, same = pid_controller(jnp.array([1 / 32, 32.0, 1e-30, 1e30]), state, 5, 0.1 * one, c)
+    np.testing.assert_array_equal(keep, [True, False, True, False])
+    np.testing.assert_allclose(h_next, 0.1 * np.array([1.8, 0.45, 10.0, 0.2]), rtol=1e-14)
+    assert same is state  # no history to keep
+    # PI (p = 0.2, i = 0.5), q = 5, e = 1/32 after an accepted step with 1/e = 4:
+    # 0.9 * 32^(0.7 / 5) * 4^(-0.2 / 5) = 0.9 * 2^0.62; with h = 0.1 and dtmax = 0.12: 0.12
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5)
+    state = PIDState(jnp.asarray(4.0), jnp.asarray(1.0), jnp.asarray(False))
+    keep, h_next, new = pid_controller(jnp.asarray(1 / 32), state, 5, jnp.asarray(0.1), c)
+    assert bool(keep) and float(h_next) == pytest.approx(0.1 * 0.9 * 2**0.62, rel=1e-13)
+    assert float(new.inv_error) == 32.0 and float(new.prev_inv_error) == 4.0
+    c = diffrax.PIDController(rtol=1e-6, atol=1e-6, pcoeff=0.2, icoeff=0.5, dtmax=0.12, dtmin=0.2)
+    _, h_next, new = pid_controller(jnp.asarray(1 / 32), state, 5, jnp.asarray(0.1), c)
+    assert float(h_next) == 0.2 and bool(new.at_dtmin)  # dtmax, then dtmin over it
+    # rejected (e = 32): the history moves back one step
+    _, _, new = pid_controller(jnp.asarray(32.0), state, 5, jnp.asarray(0.1), c)
+    assert float(new.inv_error) == 4.0 and float(new.prev_inv_error) == 1.0
+
+
+def test_resolve_simultaneous_first_listed_fires():
+    index, simultaneous = R.resolve_simultaneous(jnp.array([False, True, True]))
+    assert int(index) == 1 and bool(simultaneous)
+    index, simultaneous = R.resolve_simultaneous(jnp.array([False, True, False]))
+    assert int(index) == 1 and not bool(simultaneous)
+    # counting the first two only (the guards, at an epoch's start)
+    index, simultaneous = R.resolve_simultaneous(jnp.array([True, False, True]), 2)
+    assert int(index) == 0 and not bool(simultaneous)
+    index, simultaneous = R.resolve_simultaneous(jnp.zeros((0,), bool))
+    assert int(index) == 0 and not bool(simultaneous)

@@ -1,0 +1,339 @@
+"""Trajectory optimisation by shooting (`hj.Shooting`, `hj.shoot`), on problems whose optimum is
+known in closed form, derived here:
+
+- a ball launched from the floor at angle phi makes its k-th impact at x = x*;
+- a heating thermostat's upper threshold tuned for a duty cycle of 1/2;
+- a ball whose position at t1 is fixed, required to bounce exactly twice before t1 (the optimum
+  on the boundary of the admissible speeds), and the same without the requirement, where the
+  iterates' bounce count changes;
+- a rimless wheel whose push-off gain minimises the spectral radius of its return map's Jacobian;
+- a pytree of an open-loop thrust table (a `diffrax.LinearInterpolation` in `args`) and a feedback
+  gain, recovered from the impact and a post-impact height computed by scipy.
+"""
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+import pytest
+from scipy.integrate import solve_ivp
+
+import hybridjax as hj
+
+from helpers import TIGHT
+
+G, E, PHI = 9.8, 0.6, 0.9
+
+
+# ----------------------------------------------------------------------------- a planar ball
+
+
+def _planar_ball():
+    """State (x, h, v_x, v_h); impacts on the floor h = 0 reverse v_h with restitution e."""
+    flight = hj.Mode("flight", lambda t, s, a: jnp.stack([s[2], s[3], 0.0 * s[2], -a["g"] + 0.0 * s[3]]), dim=4)
+    bounce = hj.Transition("flight", "flight", guard=lambda t, s, a: s[1],
+                           reset=lambda t, s, a: s.at[3].multiply(-a["e"]), name="bounce")
+    return hj.HybridSystem([flight], [bounce])
+
+
+PLANAR = _planar_ball()
+# The same ball with int h dt (a running cost) as state component 0: (cost, x, h, v_x, v_h).
+PLANAR_AREA = hj.with_running_cost(PLANAR, lambda t, s, a: s[1])
+BALL_ARGS = {"g": jnp.asarray(G), "e": jnp.asarray(E)}
+
+
+def _launch(v):
+    """From the floor at x = 0 with speed v at angle PHI (h = 0 and rising: no impact at t0)."""
+    return jnp.stack([0.0 * v, 0.0 * v, v * math.cos(PHI), v * math.sin(PHI)])
+
+
+def _flight_times(v, n):
+    """Impact times t_j = (2 v sin phi / g) (1 - e^j) / (1 - e): the j-th flight lasts
+    2 e^{j-1} v sin phi / g (each impact scales the vertical speed by e)."""
+    j = np.arange(1, n + 1)
+    return 2 * v * math.sin(PHI) / G * (1 - E ** j) / (1 - E)
+
+
+K, X_STAR = 3, 4.0
+# k-th impact at x = x*: x_k = v cos phi t_k = v^2 sin(2 phi) (1 - e^k) / (g (1 - e)), so
+V_STAR = math.sqrt(X_STAR * G * (1 - E) / (math.sin(2 * PHI) * (1 - E ** K)))
+
+KTH_IMPACT = hj.Shooting(
+    PLANAR_AREA, lambda v, sol: (sol.states_before[K - 1, 1] / X_STAR - 1) ** 2,
+    x0=lambda v: jnp.concatenate([jnp.zeros(1), _launch(v)]), mode0="flight",
+    t1=20.0, args=BALL_ARGS, max_epochs=K, stepsize_controller=TIGHT)
+# The cost is (v / v* )^4 - 2 (v / v*)^2 + 1 near v*: curvature 8 / v*^2 ~ 0.4, so a step of 1.5 /
+# curvature-ish contracts the error by ~0.4 per iteration.
+SGD_BALL = optax.sgd(1.5)
+
+
+def test_kth_impact_at_target_from_several_guesses():
+    result = hj.shoot(KTH_IMPACT, jnp.array([4.0, 5.0]), SGD_BALL, steps=30, batched=True)
+    np.testing.assert_allclose(result.params, V_STAR, rtol=1e-9)
+    assert result.costs.shape == (2, 31) and np.all(result.costs[:, -1] < 1e-18)
+    # costs decrease; every iterate made (at least) the k impacts it was stopped after
+    assert np.all(np.diff(result.costs, axis=1) <= 1e-15)
+    assert np.all(result.num_events == K) and not np.any(result.sequence_changed)
+    # the returned history is the parameters' own: its last entry is the result
+    np.testing.assert_array_equal(result.params_history[:, -1], result.params)
+
+
+def test_running_cost_integrates_along_the_flow():
+    # a flight launched with vertical speed w encloses int_0^{2w/g} (w s - g s^2 / 2) ds = 2 w^3 / (3 g^2);
+    # flight j starts with vertical speed v sin(phi) e^j
+    v = 4.2
+    areas = np.cumsum([2 * (v * math.sin(PHI) * E**j) ** 3 / (3 * G**2) for j in range(K)])
+    sol = KTH_IMPACT.execution(jnp.asarray(v))
+    np.testing.assert_allclose(sol.states_before[:, 0], areas, rtol=1e-9)
+    np.testing.assert_allclose(sol.states_after[:, 0], areas, rtol=1e-9)   # resets keep it
+
+
+def test_multiple_shooting_over_epochs_finds_the_kth_impact_speed():
+    # unknowns: v, the post-impact states z_1, z_2 and the three flight durations; residuals: the
+    # floor h = 0 at each epoch's end, continuity through the resets, and x = x* at the third impact
+    problem = hj.MultipleShooting(PLANAR, (0,) * K, _launch, lambda v, ts, xs: xs[-1, :1] - X_STAR,
+                                  args=BALL_ARGS, substeps=8)
+    v0 = jnp.asarray(3.5)
+    first_guess = hj.simulate(PLANAR, _launch(v0), "flight", 0.0, 20.0, BALL_ARGS, max_epochs=K)
+    result = hj.multiple_shooting(problem, v0, hj.EpochGuess.from_solution(first_guess, K))
+    assert result.result == optx.RESULTS.successful and float(result.max_residual) < 1e-10
+    # RK4 is exact on the quadratic flights: the closed form to rounding
+    np.testing.assert_allclose(result.params, V_STAR, rtol=1e-12)
+    np.testing.assert_allclose(result.event_times, _flight_times(V_STAR, K), rtol=1e-12)
+    np.testing.assert_allclose(result.states_before[:, 0], V_STAR * math.cos(PHI) * _flight_times(V_STAR, K),
+                               rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------- thermostat
+
+A, T_AMB, P_HEAT, T_LO = 0.5, 10.0, 10.0, 18.0
+
+
+def _heating_thermostat():
+    """T' = a (T_amb - T) + P in "heat", a (T_amb - T) in "off"; heat off at T >= T_hi, heat on
+    at T <= T_lo."""
+    def flow(on):
+        return lambda t, x, p: p["a"] * (p["T_amb"] - x) + on * p["P"]
+
+    return hj.HybridSystem(
+        [hj.Mode("heat", flow(1.0), 1), hj.Mode("off", flow(0.0), 1)],
+        [hj.Transition("heat", "off", guard=lambda t, x, p: p["T_hi"] - x[0], name="heater off"),
+         hj.Transition("off", "heat", guard=lambda t, x, p: x[0] - p["T_lo"], name="heater on")])
+
+
+# One period from T_lo: heating ends at t_on (event 0), the heater is on again at t_on + t_off.
+DUTY = hj.Shooting(
+    _heating_thermostat(), lambda T_hi, sol: (sol.event_times[0] / sol.event_times[1] - 0.5) ** 2,
+    x0=jnp.array([T_LO]), mode0="heat", t1=50.0,
+    args=lambda T_hi: {"a": A, "T_amb": T_AMB, "P": P_HEAT, "T_lo": T_LO, "T_hi": T_hi},
+    max_epochs=2, lower=jnp.asarray(T_LO + 0.5), upper=jnp.asarray(29.0), stepsize_controller=TIGHT)
+# d(duty)/dT_hi ~ 0.026 at the optimum: the cost's curvature is 2 * 0.026^2 ~ 1.4e-3.
+SGD_DUTY = optax.sgd(500.0)
+
+
+def _duty_half_threshold():
+    """T relaxes to T_eq (T_amb + P / a heating, T_amb off): t_on = ln((T_lo - H) / (T_hi - H)) / a,
+    t_off = ln((T_hi - T_amb) / (T_lo - T_amb)) / a with H = T_amb + P / a. Duty 1/2 is t_on =
+    t_off: (T_hi - T_amb)(T_hi - H) = (T_lo - T_amb)(T_lo - H), a quadratic in T_hi."""
+    H = T_AMB + P_HEAT / A
+    mid = (T_AMB + H) / 2
+    return mid + math.sqrt(((H - T_AMB) / 2) ** 2 + (T_LO - T_AMB) * (T_LO - H))
+
+
+def test_thermostat_threshold_for_half_duty_cycle():
+    t_star = _duty_half_threshold()   # 22 for these numbers
+    result = hj.shoot(DUTY, jnp.asarray(21.0), SGD_DUTY, steps=25)
+    np.testing.assert_allclose(result.params, t_star, rtol=1e-7)
+    assert np.all(result.num_events == 2) and np.all(result.accepted)
+
+
+def test_thermostat_bound_is_active_when_the_optimum_lies_outside():
+    # The same compiled program (the bound is an array): the iterates stop on the upper bound.
+    capped = eqx.tree_at(lambda p: p.upper, DUTY, jnp.asarray(21.5))
+    result = hj.shoot(capped, jnp.asarray(21.0), SGD_DUTY, steps=25)
+    assert float(result.params) == 21.5
+    assert np.all(np.asarray(result.params_history) <= 21.5)
+
+
+# ----------------------------------------------------------------------------- free final time
+
+V_UP, H_STAR = 5.0, 1.0
+# The ball thrown up from the floor at V_UP passes h = H_STAR first at the smaller root of
+# V_UP T - g T^2 / 2 = H_STAR.
+T_STAR = (V_UP - math.sqrt(V_UP**2 - 2 * G * H_STAR)) / G
+FREE_TIME = hj.Shooting(
+    hj.examples.bouncing_ball(), lambda T, sol: (sol.final_state[0] / H_STAR - 1) ** 2,
+    x0=jnp.array([0.0, V_UP]), mode0="flight", t1=lambda T: T, args=BALL_ARGS, max_epochs=2,
+    lower=jnp.asarray(0.05), upper=jnp.asarray(0.45), stepsize_controller=TIGHT)
+
+
+def test_free_final_time_within_bounds():
+    # dh/dT = V_UP - g T* = 2.32 at T*: the cost's curvature is 2 * 2.32^2 ~ 10.8. The second
+    # guess lies beyond the upper bound: its iterate 0 is the guess projected onto the bound.
+    result = hj.shoot(FREE_TIME, jnp.array([0.4, 0.9]), optax.sgd(0.08), steps=25, batched=True)
+    np.testing.assert_allclose(result.params, T_STAR, rtol=1e-10)
+    assert float(result.params_history[1, 0]) == 0.45
+    assert np.all(np.asarray(result.params_history) <= 0.45) and np.all(result.num_events == 0)
+
+
+# ----------------------------------------------------------------------------- event sequences
+
+T1 = 2.0
+# x(t1) = v cos phi t1 whatever the bounces: the free optimum is V_FREE (one bounce before t1).
+V_FREE = 9.0
+X_T1 = V_FREE * math.cos(PHI) * T1
+# Exactly j bounces before t1 iff t_j(v) <= t1 < t_{j+1}(v), i.e. v in (V_BOUND(j + 1), V_BOUND(j)]
+# with t_j(V_BOUND(j)) = t1.
+V_BOUND = lambda j: G * T1 * (1 - E) / (2 * math.sin(PHI) * (1 - E ** j))
+
+
+def _reach(transitions=None):
+    return hj.Shooting(
+        PLANAR, lambda v, sol: (sol.final_state[0] / X_T1 - 1) ** 2, x0=_launch, mode0="flight", t1=T1,
+        args=BALL_ARGS, max_epochs=4, transitions=transitions, max_backtracks=40, stepsize_controller=TIGHT)
+
+
+# cost (v / V_FREE - 1)^2: curvature 2 / V_FREE^2
+SGD_REACH = optax.sgd(0.45 * V_FREE**2)
+
+
+def test_event_sequence_changes_are_reported_where_the_bounce_count_changes():
+    result = hj.shoot(_reach(), jnp.asarray(7.0), SGD_REACH, steps=12)
+    np.testing.assert_allclose(result.params, V_FREE, rtol=1e-9)
+    vs = np.asarray(result.params_history)
+    bounces = np.array([np.sum(_flight_times(v, 4) <= T1) for v in vs])
+    np.testing.assert_array_equal(result.num_events, bounces)
+    assert bounces[0] == 2 and bounces[-1] == 1
+    np.testing.assert_array_equal(result.sequence_changed[1:], np.diff(bounces) != 0)
+    assert not result.sequence_changed[0] and len(result.changes) >= 1
+
+
+def test_required_sequence_of_exactly_two_bounces():
+    result = hj.shoot(_reach((0, 0)), jnp.asarray(7.0), SGD_REACH, steps=30)
+    # The constrained optimum is the boundary: the second impact exactly at t1.
+    np.testing.assert_allclose(result.params, V_BOUND(2), rtol=1e-7)
+    assert np.all(result.num_events == 2) and not np.any(result.sequence_changed)
+    assert np.any(result.backtracks > 0)   # steps towards V_FREE leave the admissible set
+
+
+def test_definition_errors_name_the_culprit():
+    with pytest.raises(ValueError, match="max_epochs"):
+        hj.Shooting(PLANAR, lambda v, sol: 0.0, x0=_launch, mode0="flight", transitions=(0, 0, 0),
+                    max_epochs=2)
+    with pytest.raises(ValueError, match="nowhere"):
+        hj.Shooting(PLANAR, lambda v, sol: 0.0, x0=_launch, mode0="nowhere")
+    with pytest.raises(TypeError, match="optax"):
+        hj.shoot(KTH_IMPACT, 1.0, "adam", steps=1)
+
+
+# ----------------------------------------------------------------------------- gait stability
+
+ALPHA, GAMMA, W_REF = 0.3, 0.08, 0.6
+
+
+def _pushed_wheel():
+    """The rimless wheel (g / l = 1) with a push-off at heel strike proportional to the speed
+    error: omega+ = cos(2 alpha) omega- + k (omega- - omega_ref)."""
+    stance = hj.Mode("stance", lambda t, x, p: jnp.array([x[1], jnp.sin(x[0])]), dim=2)
+    strike = hj.Transition(
+        "stance", "stance", guard=lambda t, x, p: (GAMMA + ALPHA) - x[0],
+        reset=lambda t, x, p: jnp.array(
+            [x[0] - 2 * ALPHA, math.cos(2 * ALPHA) * x[1] + p["k"] * (x[1] - W_REF)]),
+        name="heel strike")
+    return hj.HybridSystem([stance], [strike])
+
+
+WHEEL = _pushed_wheel()
+
+
+def _radius_squared(k, guess):
+    orbit = hj.periodic_orbit(WHEEL, 0, guess, {"k": jnp.asarray(k)}, max_epochs=2, t_max=20.0)
+    return float(np.max(np.abs(np.linalg.eigvals(orbit.poincare_jacobian))) ** 2), orbit.state
+
+
+def test_gait_push_off_gain_minimising_the_spectral_radius():
+    """Energy from theta+ = gamma - alpha to theta- = gamma + alpha: omega-^2 = omega+^2 + beta,
+    beta = 4 sin(alpha) sin(gamma); the return map omega+' = (c + k) omega- - k omega_ref has the
+    multiplier (c + k) omega+ / omega- at its fixed point, c = cos(2 alpha): the radius is 0
+    (deadbeat) at k* = -c, where omega+* = c omega_ref > 0 is a gait."""
+    c = math.cos(2 * ALPHA)
+    k, guess = -0.7, jnp.array([GAMMA - ALPHA, 0.5])
+    opt = optax.sgd(0.6)   # the radius squared has curvature ~1.4 in k near k*
+    state = opt.init(jnp.asarray(k))
+    radii = []
+    for _ in range(5):
+        # Central differences of the radius, each from hj.periodic_orbit's DP: the derivative of
+        # a Jacobian through the impacts would be a second derivative through events.
+        h = 1e-5
+        (rp, _), (rm, _) = _radius_squared(k + h, guess), _radius_squared(k - h, guess)
+        r, guess = _radius_squared(k, guess)
+        radii.append(r)
+        updates, state = opt.update(jnp.asarray((rp - rm) / (2 * h)), state)
+        k = float(optax.apply_updates(jnp.asarray(k), updates))
+    np.testing.assert_allclose(k, -c, atol=1e-4)
+    assert radii[-1] < 1e-7 and radii[-1] < radii[0]
+    # the orbit at the optimum: omega+* = c omega_ref; the monodromy keeps its multiplier 1
+    orbit = hj.periodic_orbit(WHEEL, 0, guess, {"k": jnp.asarray(-c)}, max_epochs=2, t_max=20.0)
+    np.testing.assert_allclose(orbit.state, [GAMMA - ALPHA, c * W_REF], atol=1e-9)
+    np.testing.assert_allclose(np.max(np.abs(orbit.multipliers_ad)), 1.0, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- control table and feedback gain
+
+H0, T_CTRL, T_SAVE = 2.0, 1.5, 1.2
+KNOT_TS = jnp.array([0.0, T_CTRL])
+
+
+def _thrust_ball():
+    """h'' = -g + u(t) - k h' with u linear between the knots (an open-loop table in `args`) and a
+    feedback gain k (a policy's weight in `args`); impacts on h = 0 with restitution E."""
+    def flow(t, x, p):
+        u = diffrax.LinearInterpolation(KNOT_TS, p["knots"]).evaluate(t)
+        return jnp.stack([x[1], -G + u - p["gain"] * x[1]])
+
+    bounce = hj.Transition("flight", "flight", guard=lambda t, x, p: x[0],
+                           reset=lambda t, x, p: jnp.stack([x[0], -E * x[1]]))
+    return hj.HybridSystem([hj.Mode("flight", flow, dim=2)], [bounce])
+
+
+def _scipy_targets(knots, gain):
+    """First impact time, speed before it, and height at T_SAVE after it: scipy's solve_ivp with
+    a terminal event, restarted from the reset state."""
+    def f(t, x):
+        u = knots[0] + (knots[1] - knots[0]) * t / T_CTRL
+        return [x[1], -G + u - gain * x[1]]
+
+    def impact(t, x):
+        return x[0]
+
+    impact.terminal, impact.direction = True, -1
+    first = solve_ivp(f, (0.0, T_CTRL), [H0, 0.0], events=impact, rtol=1e-12, atol=1e-12)
+    t_1, v_1 = first.t_events[0][0], first.y_events[0][0][1]
+    after = solve_ivp(f, (t_1, T_SAVE), [0.0, -E * v_1], rtol=1e-12, atol=1e-12)
+    return t_1, v_1, after.y[0, -1]
+
+
+def test_a_control_table_and_a_feedback_gain_are_recovered_as_one_pytree():
+    # The parameters (knots (3, 6), gain 0.5) are unknown to the optimiser: it sees only the
+    # impact time, the impact speed and a height after the bounce, computed by scipy from them;
+    # three conditions, three unknowns (locally unique), so the optimum has cost 0 there.
+    t_1, v_1, h_after = _scipy_targets(np.array([3.0, 6.0]), 0.5)
+
+    def cost(p, sol):
+        return ((sol.event_times[0] - t_1) ** 2 + ((sol.states_before[0, 1] - v_1) / 5) ** 2
+                + (sol.ys[0, 0] - h_after) ** 2)
+
+    problem = hj.Shooting(_thrust_ball(), cost, x0=jnp.array([H0, 0.0]), mode0="flight", t1=T_CTRL,
+                          args=lambda p: p, saveat=jnp.array([T_SAVE]), max_epochs=2,
+                          stepsize_controller=TIGHT)
+    result = hj.shoot(problem, {"knots": jnp.array([2.0, 5.0]), "gain": jnp.asarray(0.3)},
+                      optax.lbfgs(), steps=40)
+    # scipy's and hybridjax's executions agree to ~1e-10, which bounds how well the targets pin
+    # the parameters down.
+    np.testing.assert_allclose(result.params["knots"], [3.0, 6.0], atol=1e-7)
+    np.testing.assert_allclose(result.params["gain"], 0.5, atol=1e-7)
+    assert float(result.costs[-1]) < 1e-16
