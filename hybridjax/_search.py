@@ -79,6 +79,29 @@ def _angle_of(t, lo, hi):
     return jnp.arcsin(jnp.clip((2 * t - lo - hi) / jnp.where(w > 0, w, 1.0), -0.99, 0.99))
 
 
+class _FiniteSVD(lx.SVD):
+    """lineax's SVD least squares, of the operator with its non-finite entries set to 0.
+
+    LAPACK's SVD can loop without end on a matrix holding a NaN (seen on XLA:CPU), and a
+    constraint can have a non-finite derivative at a sample (a contact system's equations at a
+    configuration where its constraints are dependent). A zero column leaves that direction
+    out of the step instead.
+    """
+
+    def init(self, operator, options):
+        matrix = operator.as_matrix()
+        finite = lx.MatrixLinearOperator(jnp.where(jnp.isfinite(matrix), matrix, 0.0))
+        return super().init(finite, options)
+
+
+def _finite(r: Array) -> Array:
+    """Residuals with every non-finite entry replaced by a large finite one (still violated):
+    the least-squares step stays finite, and the point is scored by `_violation`, where it is
+    infinite."""
+    # A fourth root of the largest float: the squared sum of many such entries stays finite.
+    return jnp.where(jnp.isfinite(r), r, jnp.asarray(jnp.finfo(r.dtype).max ** 0.25, r.dtype))
+
+
 def constraint_violation(
     equalities: Callable | None,
     inequalities: Callable | None,
@@ -194,17 +217,19 @@ def search(
     # to a half-plane: 64 steps, still 1e-3 away; dogleg: 16 steps to rounding). Least squares
     # by SVD, as the Jacobian is often rank-deficient (a constraint not involving every
     # component, fewer constraints than unknowns).
-    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=lx.SVD())
+    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=_FiniteSVD())
 
     def refine(t, x):
+        # One flat vector of unknowns, so that the finite copy of the Jacobian that
+        # `_FiniteSVD` solves with has the structure of the original.
         if t_bounds is None:
-            fn = lambda y, _: _residuals(constraints, None, t, y, args)
+            fn = lambda y, _: _finite(_residuals(constraints, None, t, y, args))
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
             return t, sol.value
-        fn = lambda y, _: _residuals(constraints, None, _time_of(y[0], *t_bounds), y[1], args)
-        y0 = (_angle_of(t, *t_bounds), x)
+        fn = lambda y, _: _finite(_residuals(constraints, None, _time_of(y[0], *t_bounds), y[1:], args))
+        y0 = jnp.concatenate([_angle_of(t, *t_bounds)[None].astype(dtype), x])
         sol = optx.least_squares(fn, solver, y0, max_steps=max_steps, throw=False)
-        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1]
+        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1:]
 
     t1, x1 = jax.vmap(refine)(t0, x0)
     cand_t = jnp.concatenate([t0, t1])
