@@ -52,6 +52,7 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float
 
+from . import _small_linalg as small_linalg
 from ._search import box_samples, find_point
 from ._system import HybridSystem, Mode, Transition
 
@@ -305,13 +306,22 @@ def constraint_kinematics(fns, t, q, dq, args):
 
 def kkt_solve(M, top, J, bottom, mask, least_norm=False):
     r"""Solve $M u - J^\top \mathrm{diag}(m) \mu = $ `top`, $m_i (J u)_i + (1 - m_i) \mu_i = m_i$
-    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$). Least-norm (pseudo-inverse) for
-    dependent rows."""
+    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$).
+
+    With `least_norm`, the held rows read $(J u)_i + \varepsilon \mu_i = $ `bottom`$_i$ with
+    $\varepsilon = 10^{-10} \operatorname{tr}(J M^{-1} J^\top) / K$: eliminating $u$ leaves
+    $(J M^{-1} J^\top + \varepsilon I) \mu = \ldots$, whose solution tends to the least-norm
+    $\mu$ of dependent rows as $\varepsilon \to 0$ (the held rates are met to $\varepsilon |\mu|$).
+    Solved by elimination written as array operations (`_small_linalg.solve`), not LAPACK."""
     n = M.shape[0]
     Jm = mask[:, None] * J
-    K = jnp.block([[M, -Jm.T], [Jm, jnp.diag(1.0 - mask)]])
+    corner = jnp.diag(1.0 - mask)
+    if least_norm:
+        G = Jm @ small_linalg.solve(M, Jm.T)
+        corner = corner + 1e-10 * jnp.trace(G) / max(J.shape[0], 1) * jnp.diag(mask)
+    K = jnp.block([[M, -Jm.T], [Jm, corner]])
     rhs = jnp.concatenate([top, mask * bottom])
-    sol = jnp.linalg.pinv(K, rtol=1e-10) @ rhs if least_norm else jnp.linalg.solve(K, rhs)
+    sol = small_linalg.solve(K, rhs)
     return sol[:n], sol[n:]
 
 
@@ -321,7 +331,7 @@ def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False)
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
     if not fns:
-        return jnp.linalg.solve(M, f), jnp.zeros((0,), q.dtype)
+        return small_linalg.solve(M, f), jnp.zeros((0,), q.dtype)
     _, J, _, bias = constraint_kinematics(fns, t, q, dq, args)
     return kkt_solve(M, f, J, -bias, mask, least_norm)
 
@@ -339,18 +349,19 @@ def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
 
 
 def independence(scene, fns, held, t, q, args):
-    r"""$\sigma_{\min} / \sigma_{\max}$ of $J M^{-1} J^\top$ on the held rows (1 where none):
-    0 for dependent constraints."""
+    r"""How far the held constraints are from dependent: the smallest pivot of the Cholesky
+    factorisation with diagonal pivoting of $G = J M^{-1} J^\top$ on the held rows (identity
+    rows elsewhere), over its largest diagonal entry (`_small_linalg.rank_ratio`): 1 for
+    orthogonal unit constraints, 0 to rounding for dependent ones."""
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
-    G = J @ jnp.linalg.solve(M, J.T)
-    G = held[:, None] * held[None, :] * G + jnp.diag(1.0 - held)
-    G = 0.5 * (G + G.T)
-    w = jnp.linalg.eigvalsh(G)
-    return w[0] / w[-1]
+    G = J @ small_linalg.solve(M, J.T)
+    scale = jnp.max(jnp.where(held > 0, jnp.diagonal(G), 0.0))
+    G = held[:, None] * held[None, :] * G + jnp.where(scale > 0, scale, 1.0) * jnp.diag(1.0 - held)
+    return small_linalg.rank_ratio(0.5 * (G + G.T))
 
 
-_INDEPENDENT = 1e-9  # sigma_min / sigma_max of the held Gram matrix below this: dependent
+_INDEPENDENT = 1e-9  # `independence` below this: dependent
 
 
 # ----------------------------------------------------------------------------- contact sets
@@ -569,8 +580,7 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         ]
         ineq = jnp.concatenate(ineq)
         # A singular contact system (dependent constraints at a sample) gives non-finite values:
-        # they count as violated, finite, so that no NaN reaches the least-squares solve (whose
-        # SVD can stall on one).
+        # they count as violated, and finite.
         eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
         return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
 

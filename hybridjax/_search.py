@@ -23,6 +23,8 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from . import _small_linalg as small_linalg
+
 
 class Witness(eqx.Module):
     """The result of `find_point`: the best point found and whether it satisfies the constraints.
@@ -79,19 +81,35 @@ def _angle_of(t, lo, hi):
     return jnp.arcsin(jnp.clip((2 * t - lo - hi) / jnp.where(w > 0, w, 1.0), -0.99, 0.99))
 
 
-class _FiniteSVD(lx.SVD):
-    """lineax's SVD least squares, of the operator with its non-finite entries set to 0.
+class _DampedLeastSquares(lx.AbstractLinearSolver):
+    """The least-squares step of the search: `_small_linalg.least_squares` (damped normal
+    equations, close to the least-norm solution where the Jacobian is rank-deficient) of the
+    Jacobian with its non-finite entries set to 0.
 
-    LAPACK's SVD can loop without end on a matrix holding a NaN (seen on XLA:CPU), and a
-    constraint can have a non-finite derivative at a sample (a contact system's equations at a
-    configuration where its constraints are dependent). A zero column leaves that direction
-    out of the step instead.
+    A constraint can have a non-finite derivative at a sample (a contact system's equations
+    where its constraints are dependent): a zero column leaves that direction out of the step.
+    Written as array operations rather than LAPACK's SVD, whose custom call can wait forever on
+    the thread pool when other such calls run at once (see `_small_linalg`). Only `compute` is
+    used by optimistix's least-squares solvers (the search is not differentiated through).
     """
 
     def init(self, operator, options):
+        del options
         matrix = operator.as_matrix()
-        finite = lx.MatrixLinearOperator(jnp.where(jnp.isfinite(matrix), matrix, 0.0))
-        return super().init(finite, options)
+        return jnp.where(jnp.isfinite(matrix), matrix, 0.0)
+
+    def compute(self, state, vector, options):
+        del options
+        return small_linalg.least_squares(state, vector), lx.RESULTS.successful, {}
+
+    def transpose(self, state, options):
+        return state.T, options
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return False
 
 
 def _finite(r: Array) -> Array:
@@ -215,13 +233,12 @@ def search(
     # A trust region (dogleg) rather than Levenberg-Marquardt: at the kink of min(c, 0), where
     # an inequality becomes active, Levenberg-Marquardt's damping crawls (a unit circle tangent
     # to a half-plane: 64 steps, still 1e-3 away; dogleg: 16 steps to rounding). Least squares
-    # by SVD, as the Jacobian is often rank-deficient (a constraint not involving every
-    # component, fewer constraints than unknowns).
-    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=_FiniteSVD())
+    # close to least-norm, as the Jacobian is often rank-deficient (a constraint not involving
+    # every component, fewer constraints than unknowns).
+    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=_DampedLeastSquares())
 
     def refine(t, x):
-        # One flat vector of unknowns, so that the finite copy of the Jacobian that
-        # `_FiniteSVD` solves with has the structure of the original.
+        # One flat vector of unknowns: `_DampedLeastSquares` solves with the Jacobian's matrix.
         if t_bounds is None:
             fn = lambda y, _: _finite(_residuals(constraints, None, t, y, args))
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
