@@ -40,6 +40,11 @@ from ._optimise.shooting import Shooting as Shooting
 from ._optimise.shooting import ShootingResult as ShootingResult
 from ._optimise.shooting import shoot as shoot
 from ._optimise.shooting import with_running_cost as with_running_cost
+from ._scenes.scene import Constraint as Constraint
+from ._scenes.scene import ContactSystem as ContactSystem
+from ._scenes.scene import Relabel as Relabel
+from ._scenes.scene import Scene as Scene
+from ._scenes.scene import contact_system as contact_system
 from ._solution.solution import Epoch as Epoch
 from ._solution.solution import Solution as Solution
 from ._solve.simulate import simulate as simulate

@@ -23,6 +23,8 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from .._core import small_linalg as small_linalg
+
 
 class Witness(eqx.Module):
     """The result of `find_point`: the best point found and whether it satisfies the constraints.
@@ -77,6 +79,45 @@ def _angle_of(t, lo, hi):
     its ends: a start at an end would sit where d t / d s = 0, and its t would never move."""
     w = hi - lo
     return jnp.arcsin(jnp.clip((2 * t - lo - hi) / jnp.where(w > 0, w, 1.0), -0.99, 0.99))
+
+
+class _DampedLeastSquares(lx.AbstractLinearSolver):
+    """The least-squares step of the search: `_small_linalg.least_squares` (damped normal
+    equations, close to the least-norm solution where the Jacobian is rank-deficient) of the
+    Jacobian with its non-finite entries set to 0.
+
+    A constraint can have a non-finite derivative at a sample (a contact system's equations
+    where its constraints are dependent): a zero column leaves that direction out of the step.
+    Written as array operations rather than LAPACK's SVD, whose custom call can wait forever on
+    the thread pool when other such calls run at once (see `_small_linalg`). Only `compute` is
+    used by optimistix's least-squares solvers (the search is not differentiated through).
+    """
+
+    def init(self, operator, options):
+        del options
+        matrix = operator.as_matrix()
+        return jnp.where(jnp.isfinite(matrix), matrix, 0.0)
+
+    def compute(self, state, vector, options):
+        del options
+        return small_linalg.least_squares(state, vector), lx.RESULTS.successful, {}
+
+    def transpose(self, state, options):
+        return state.T, options
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return False
+
+
+def _finite(r: Array) -> Array:
+    """Residuals with every non-finite entry replaced by a large finite one (still violated):
+    the least-squares step stays finite, and the point is scored by `_violation`, where it is
+    infinite."""
+    # A fourth root of the largest float: the squared sum of many such entries stays finite.
+    return jnp.where(jnp.isfinite(r), r, jnp.asarray(jnp.finfo(r.dtype).max ** 0.25, r.dtype))
 
 
 def constraint_violation(
@@ -192,19 +233,20 @@ def search(
     # A trust region (dogleg) rather than Levenberg-Marquardt: at the kink of min(c, 0), where
     # an inequality becomes active, Levenberg-Marquardt's damping crawls (a unit circle tangent
     # to a half-plane: 64 steps, still 1e-3 away; dogleg: 16 steps to rounding). Least squares
-    # by SVD, as the Jacobian is often rank-deficient (a constraint not involving every
-    # component, fewer constraints than unknowns).
-    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=lx.SVD())
+    # close to least-norm, as the Jacobian is often rank-deficient (a constraint not involving
+    # every component, fewer constraints than unknowns).
+    solver = optx.Dogleg(rtol=1e-12, atol=1e-14, linear_solver=_DampedLeastSquares())
 
     def refine(t, x):
+        # One flat vector of unknowns: `_DampedLeastSquares` solves with the Jacobian's matrix.
         if t_bounds is None:
-            fn = lambda y, _: _residuals(constraints, None, t, y, args)
+            fn = lambda y, _: _finite(_residuals(constraints, None, t, y, args))
             sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
             return t, sol.value
-        fn = lambda y, _: _residuals(constraints, None, _time_of(y[0], *t_bounds), y[1], args)
-        y0 = (_angle_of(t, *t_bounds), x)
+        fn = lambda y, _: _finite(_residuals(constraints, None, _time_of(y[0], *t_bounds), y[1:], args))
+        y0 = jnp.concatenate([_angle_of(t, *t_bounds)[None].astype(dtype), x])
         sol = optx.least_squares(fn, solver, y0, max_steps=max_steps, throw=False)
-        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1]
+        return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1:]
 
     t1, x1 = jax.vmap(refine)(t0, x0)
     cand_t = jnp.concatenate([t0, t1])
