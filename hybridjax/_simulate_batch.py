@@ -10,7 +10,7 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
-from ._batched import BatchedLoop, as_status
+from ._batched import BatchedLoop, as_status, can_map_step
 from ._eager import compiled_when_eager
 from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
@@ -22,17 +22,14 @@ from ._validation import as_state_array, check_time_span
 from ._zeno import ZenoOptions, zeno_options
 
 
-def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
-                           per_lane_times: bool) -> str | None:
+def batched_engine_refusal(system: HybridSystem, solver, controller) -> str | None:
     """Why the batched engine cannot run this problem (None when it can)."""
-    if not can_unroll(solver):
+    if not (can_unroll(solver) or can_map_step(solver)):
         return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
-                "Tsit5, Dopri5, Dopri8")
+                "Tsit5, Dopri5, Dopri8, ImplicitEuler, Kvaerno3, Kvaerno4, Kvaerno5")
     if not can_batch_controller(controller):
         return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm, "
                 "Python-number coefficients and no step_ts or jump_ts")
-    if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
-        return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
     return None
 
 
@@ -209,8 +206,7 @@ def simulate_batch(
         system, x0_arr[0], lane_args, **opts)
     zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
     args = promote_args(args, dtype)
-    per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
-    refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
+    refusal = batched_engine_refusal(system, solver_p, controller)
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
     m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
@@ -226,7 +222,10 @@ def simulate_batch(
         one_mode = int(mode0) if np.ndim(mode0) == 0 else None  # None: per-execution modes
         x0_arr = jax.vmap(lambda x: _initial_state(system, x, one_mode, dtype))(x0_arr)
     y0 = x0_arr.astype(dtype)
-    save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
+    # SaveAt(t0/t1): each execution's own, placeholders here (`BatchedLoop`'s save_t0, save_t1)
+    sub = saveat.subs if isinstance(saveat, diffrax.SaveAt) else None
+    save_t0, save_t1 = bool(sub is not None and sub.t0), bool(sub is not None and sub.t1)
+    save_ts = _save_times(saveat, jnp.array(-jnp.inf, dtype), jnp.array(jnp.inf, dtype), dtype)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1, t1_before_t0 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
@@ -253,14 +252,15 @@ def simulate_batch(
 
     def solve(t0, y0, m0, t1, part_args, shared_arrays):
         system_, controller_, event_tol_, save_ts_, args_ = eqx.combine(shared_arrays, shared_static)
+        stepper = UnrolledERK(solver_p) if can_unroll(solver_p) else solver_p  # else `mapped_step`
         loop = BatchedLoop(
             system_, t1=t1, args=part_args if args_batched else args_, args_axis=0 if args_batched else None,
-            solver=UnrolledERK(solver_p), controller=controller_, dt0=dt0,
+            solver=stepper, controller=controller_, dt0=dt0,
             max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
             event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
             zeno=zeno_opts,
             loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
-            save_ts=save_ts_)
+            save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1)
         final, rec = loop.run(t0, y0.T, m0)
         # Executions first, every output: the devices' parts are joined along that axis.
         return dict(**rec.fields(t0.shape[0], int(max_epochs)), num_events=final.num_events,
@@ -277,8 +277,13 @@ def simulate_batch(
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
     status = jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status"))
+    ts = jnp.broadcast_to(save_ts, (N,) + save_ts.shape)
+    if save_t0:
+        ts = ts.at[:, 0].set(t0)
+    if save_t1:
+        ts = ts.at[:, -1].set(t1)
     return Solution(
-        **out, status=as_status(status), ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape),
+        **out, status=as_status(status), ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
     )
 

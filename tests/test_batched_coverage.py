@@ -99,3 +99,60 @@ def test_pid_options_in_the_batched_engine(controller):
     np.testing.assert_array_equal(got.num_events, want.num_events)
     np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-11)
     np.testing.assert_allclose(got.final_state, want.final_state, rtol=1e-9, atol=1e-11)
+
+
+def _ball_impact_times(h0, v0, g, e, count):
+    """The ball's impact times, by hand: the first at (v0 + v1) / g with the impact speed
+    v1 = sqrt(v0^2 + 2 g h0), then one flight of 2 e^k v1 / g after the k-th impact."""
+    v1 = math.sqrt(v0 * v0 + 2 * g * h0)
+    times = [(v0 + v1) / g]
+    for k in range(1, count):
+        times.append(times[-1] + 2 * e**k * v1 / g)
+    return np.array(times)
+
+
+def test_implicit_solver_in_the_batched_engine():
+    # Kvaerno3's own step mapped over the lanes, its dense output (cubic Hermite) locating the
+    # impacts; the step-size rule the shared one.
+    kw = dict(solver=diffrax.Kvaerno3(), stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 1.2, 5),
+              args_batched=True)
+    got = hj.simulate_batch(BALL, X0, "flight", 0.0, 1.2, ARGS, engine="batched", **kw)
+    # the second ball accumulates its impacts at 0.96 (`examples.zeno_time`)
+    assert list(got.status_name) == ["T1_REACHED", "ZENO", "T1_REACHED"]
+    for i in range(3):
+        n = int(got.num_events[i])
+        assert n >= 1
+        want = _ball_impact_times(float(X0[i, 0]), float(X0[i, 1]), 9.8, float(E[i]), n)
+        # Kvaerno3 at rtol = atol = 1e-10 on a quadratic flight, its root finds at the same
+        # tolerance: the impact times to 1e-8.
+        np.testing.assert_allclose(got.event_times[i, :n], want, atol=1e-8)
+    want = hj.simulate_batch(BALL, X0, "flight", 0.0, 1.2, ARGS, engine="vmap", **kw)
+    np.testing.assert_array_equal(got.num_events, want.num_events)
+    np.testing.assert_array_equal(got.num_steps, want.num_steps)
+    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+    np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-10)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-9)
+
+
+def test_per_execution_t0_t1_saves_in_the_batched_engine():
+    # SaveAt(t0=True, t1=True): each execution saves at its own t0 and t1.
+    t0, t1 = jnp.array([0.0, 0.1, 0.2]), jnp.array([0.3, 0.7, 1.0])
+    ts = np.array([0.25, 0.5])
+    kw = dict(saveat=diffrax.SaveAt(t0=True, t1=True, ts=jnp.asarray(ts)), stepsize_controller=TIGHT,
+              args_batched=True)
+    got = hj.simulate_batch(BALL, X0, "flight", t0, t1, ARGS, engine="batched", **kw)
+    assert list(got.status_name) == ["T1_REACHED"] * 3
+    for i in range(3):
+        np.testing.assert_array_equal(got.ts[i], [t0[i], *ts, t1[i]])
+        h0, v0, e = float(X0[i, 0]), float(X0[i, 1]), float(E[i])
+        for k, s in enumerate([float(t0[i]), *ts, float(t1[i])]):
+            if s > float(t1[i]):  # after the execution's end: not saved
+                assert np.all(np.isinf(got.ys[i, k])) and int(got.saved_modes[i, k]) == -1
+                continue
+            # at or before t0 the initial state; after it the closed form from (t0, x0)
+            want = examples.bouncing_ball_closed_form(h0, v0, 9.8, e, max(s - float(t0[i]), 0.0))
+            np.testing.assert_allclose(got.ys[i, k], want["final_state"], atol=1e-8)
+    want = hj.simulate_batch(BALL, X0, "flight", t0, t1, ARGS, engine="vmap", **kw)
+    np.testing.assert_array_equal(got.ts, want.ts)
+    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-9)
