@@ -61,6 +61,7 @@ from ._rules import (
     EpochStart,
     blocks,
     carries_step,
+    clip_to_times,
     dip_filter,
     dip_interval,
     epoch_start,
@@ -493,7 +494,7 @@ class BatchedLoop:
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
                  zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
                  block: int | tuple | None = None, save_ts=None, save_t0: bool = False,
-                 save_t1: bool = False):
+                 save_t1: bool = False, step_ts=None, jump_ts=None):
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
@@ -501,6 +502,7 @@ class BatchedLoop:
         self.kern = Kernels(system, lane_args, dtype)
         self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
         self.solver, self.controller, self.dt0 = solver, controller, dt0
+        self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
         # `UnrolledERK`: the explicit step written lanes last; another (implicit) diffrax solver:
         # its own `step` mapped over the lanes (`mapped_step`).
         self.mapped = not isinstance(solver, UnrolledERK)
@@ -905,6 +907,12 @@ class BatchedLoop:
         t, y, f0 = mask_inputs(stepping, (st.t, st.y, st.f0))
         args = self.lane_args(st)
         t_next = step_end(t, st.h, st.t1)
+        t_from = t  # the step's start before `clip_to_times`, for the saves
+        if self.step_ts is not None or self.jump_ts is not None:
+            t, t_next, jumped = clip_to_times(t, t_next, st.t1, self.step_ts, self.jump_ts)
+            if self.fsal and self.jump_ts is not None:  # past a jump time: the field anew
+                f0 = lax.cond(jnp.any(jumped), lambda: jnp.where(jumped, self.flows(st.mode, t, y, args), f0),
+                              lambda: f0)
         hh = t_next - t
         if self.mapped:
             y1, ks, f_last, y_err = self.mapped_step(st.mode, t, t_next, y, f0, args)
@@ -1048,7 +1056,7 @@ class BatchedLoop:
             new = _stop(new, (reached, Status.T1_REACHED))
             took, t_end = acc, sg(t_next)
         if self.save_ts.shape[0]:
-            new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks)
+            new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks, t_from)
         # A non-finite step that cannot be shrunk any further stops the lane at the step's
         # start, where everything was finite.
         stops = step_stops(stuck, finite, h_new, sg(t), self.eps, new.num_steps, self.max_steps)
@@ -1056,10 +1064,11 @@ class BatchedLoop:
         return new, rec
 
     # ------------------------------------------------------------------ saved states
-    def save(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, y, y1, ks):
-        """Write the save times in (t, t_end] of each lane whose step was taken, from the step's
-        dense output (the pre-event state at an event time), SAVE_WINDOW sorted save times per
-        pass; a bounded loop of passes covers a step with more."""
+    def save(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, y, y1, ks, t_from):
+        """Write the save times in (t_from, t_end] of each lane whose step was taken, from the
+        step's dense output on [t, t_next] (the pre-event state at an event time; t_from <= t
+        the step's start before `clip_to_times` moved it past a jump time), SAVE_WINDOW sorted
+        save times per pass; a bounded loop of passes covers a step with more."""
         S = self.save_ts.shape[0]
         lanes = st.exec_id
         coeffs = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks).coeffs  # (D+1, n, N)
@@ -1071,7 +1080,7 @@ class BatchedLoop:
             rec, ptr = carry
             idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
-            ok = took & (idx < S) & saved_in_step(tt, sg(t), t_end)
+            ok = took & (idx < S) & saved_in_step(tt, sg(t_from), t_end)
             dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
             vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
@@ -1087,13 +1096,14 @@ class BatchedLoop:
 
         rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
         if self.save_t1:
-            rec = self.save_at_t1(st, rec, mode, took, t, t_next, t_end, coeffs)
+            rec = self.save_at_t1(st, rec, mode, took, t, t_next, t_end, coeffs, t_from)
         return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
 
-    def save_at_t1(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, coeffs) -> LaneRecord:
+    def save_at_t1(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, coeffs,
+                   t_from) -> LaneRecord:
         """Write the last save, at each lane's own t1 (`SaveAt(t1=True)`), where t1 lies in the
-        step's (t, t_end] (`saved_in_step`), from the step's dense output."""
-        hit = took & saved_in_step(st.t1, sg(t), t_end)
+        step's (t_from, t_end] (`saved_in_step`; `save`'s arguments), from the step's dense output."""
+        hit = took & saved_in_step(st.t1, sg(t_from), t_end)
 
         def put(rec):
             vals = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs).evaluate(jnp.clip(st.t1, sg(t), sg(t_next)))

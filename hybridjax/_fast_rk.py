@@ -116,6 +116,22 @@ def can_batch_controller(controller) -> bool:
         return False
 
 
+def split_clip(controller, dtype) -> tuple[Any, Any, Any]:
+    """diffrax's `PIDController(step_ts=..., jump_ts=...)` is a `ClipStepSizeController` around
+    the `PIDController`: returns the controller inside and the times (sorted arrays of `dtype`,
+    None where not given), for `_rules.clip_to_times`; any other controller (a
+    `ClipStepSizeController` that stores rejected steps, too) as it is, with (None, None)."""
+    c = controller
+    if type(c) is not diffrax.ClipStepSizeController or c.store_rejected_steps is not None \
+            or c.callback_on_reject is not None:
+        return controller, None, None
+
+    def times(ts):
+        return None if ts is None else jnp.sort(jnp.asarray(ts, dtype).reshape(-1))
+
+    return c.controller, times(c.step_ts), times(c.jump_ts)
+
+
 def explicit_rk_step(tab, field, t0, y0, h, f0):
     """One explicit Runge-Kutta step of size h from (t0, y0) with the tableau `tab` (its `c`,
     `a` rows, `b_sol`, `ssal`), the first stage's field value f0 given:

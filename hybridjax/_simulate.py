@@ -13,7 +13,7 @@ from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=..
 from jaxtyping import ArrayLike, Float, Int
 
 from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
+from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller, split_clip
 from ._loop import Loop
 from ._solution import Solution
 from ._status import Status
@@ -106,8 +106,7 @@ def _choose_engine(engine: str, solver, controller):
         why = (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, "
                "Bosh3, Tsit5, Dopri5, Dopri8" if not fast_solver else
                f"stepsize_controller {controller!r} is not a PIDController with default "
-               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax, "
-               "step_ts or jump_ts")
+               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax")
         raise ValueError(f"engine='fast': {why}; use engine='diffrax' (or 'auto').")
     if fast_solver:
         solver = UnrolledERK(solver)
@@ -338,6 +337,8 @@ def simulate(
         max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
         interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
         zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
+    # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
+    controller, step_ts, jump_ts = split_clip(controller, dtype)
     solver, controller = _choose_engine(engine, solver, controller)
     args = promote_args(args, dtype)
 
@@ -364,6 +365,8 @@ def simulate(
         loop_kind=kind,
         checkpoints=checkpoints,
         dtype=dtype,
+        step_ts=step_ts,
+        jump_ts=jump_ts,
     )
     with naming_the_forward_mode_fix():
         st, rec = loop.run(t0, y0, m0)

@@ -12,7 +12,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from ._batched import BatchedLoop, as_status, can_map_step
 from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll
+from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll, split_clip
 from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
 from ._solution import Solution
 from ._status import Status
@@ -28,8 +28,8 @@ def batched_engine_refusal(system: HybridSystem, solver, controller) -> str | No
         return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
                 "Tsit5, Dopri5, Dopri8, ImplicitEuler, Kvaerno3, Kvaerno4, Kvaerno5")
     if not can_batch_controller(controller):
-        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm, "
-                "Python-number coefficients and no step_ts or jump_ts")
+        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm and "
+                "Python-number coefficients (step_ts, jump_ts allowed)")
     return None
 
 
@@ -206,6 +206,8 @@ def simulate_batch(
         system, x0_arr[0], lane_args, **opts)
     zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
     args = promote_args(args, dtype)
+    # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
+    controller, step_ts, jump_ts = split_clip(controller, dtype)
     refusal = batched_engine_refusal(system, solver_p, controller)
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
@@ -247,11 +249,13 @@ def simulate_batch(
         # (benchmarks/gradient_cost.py).
         block = num_lanes
     # Everything the loop reads besides the executions' own rows: passed to each device whole.
-    shared = (system, FastIController(controller), event_tol_v, save_ts, None if args_batched else args)
+    shared = (system, FastIController(controller), event_tol_v, save_ts, step_ts, jump_ts,
+              None if args_batched else args)
     shared_arrays, shared_static = eqx.partition(shared, eqx.is_array)
 
     def solve(t0, y0, m0, t1, part_args, shared_arrays):
-        system_, controller_, event_tol_, save_ts_, args_ = eqx.combine(shared_arrays, shared_static)
+        system_, controller_, event_tol_, save_ts_, step_ts_, jump_ts_, args_ = eqx.combine(shared_arrays,
+                                                                                           shared_static)
         stepper = UnrolledERK(solver_p) if can_unroll(solver_p) else solver_p  # else `mapped_step`
         loop = BatchedLoop(
             system_, t1=t1, args=part_args if args_batched else args_, args_axis=0 if args_batched else None,
@@ -260,7 +264,7 @@ def simulate_batch(
             event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
             zeno=zeno_opts,
             loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
-            save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1)
+            save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1, step_ts=step_ts_, jump_ts=jump_ts_)
         final, rec = loop.run(t0, y0.T, m0)
         # Executions first, every output: the devices' parts are joined along that axis.
         return dict(**rec.fields(t0.shape[0], int(max_epochs)), num_events=final.num_events,

@@ -1,6 +1,7 @@
 """`simulate_batch` runs its own engine (`engine="batched"` refuses to fall back to
-`jax.vmap(simulate)`) for what the per-execution engine does: Zeno completions, and every
-option of diffrax's `PIDController` but step_ts / jump_ts."""
+`jax.vmap(simulate)`) for what the per-execution engine does: Zeno completions, every option
+of diffrax's `PIDController` (step_ts and jump_ts too), implicit solvers, and
+`SaveAt(t0=True, t1=True)` with per-execution t0 / t1."""
 
 import math
 
@@ -156,3 +157,42 @@ def test_per_execution_t0_t1_saves_in_the_batched_engine():
     np.testing.assert_array_equal(got.ts, want.ts)
     np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
     np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-9)
+
+
+# dx/dt = (t - 0.3)_+ + [t >= 0.6]: a kink at 0.3 (a step time) and a jump of the field at 0.6
+# (a jump time); x reaching 0.5 resets it to x - 1. Piecewise a polynomial of degree 1 in t,
+# which Tsit5 integrates exactly on each step that does not straddle 0.3 or 0.6.
+FORCED = hj.HybridSystem(
+    [hj.Mode("m", lambda t, x, p: (jnp.maximum(t - 0.3, 0.0) + jnp.where(t < 0.6, 0.0, 1.0)) * jnp.ones_like(x),
+             dim=1)],
+    [hj.Transition("m", "m", guard=lambda t, x, p: 0.5 - x[0], reset=lambda t, x, p: x - 1.0)],
+)
+
+
+def _forced(x0, t):
+    return x0 + 0.5 * max(t - 0.3, 0.0) ** 2 + max(t - 0.6, 0.0)
+
+
+def test_step_ts_and_jump_ts_in_the_batched_engine():
+    x0 = np.array([0.0, 0.05, 0.1])
+    ts = np.array([0.3, 0.6, 0.9, 1.2])
+    # Loose tolerances: a step across 0.3 or 0.6 leaves an error of 1e-5 to 1e-3 here (without
+    # step_ts / jump_ts, 6.6e-5 at the kink and 3.7e-3 at the jump in x(1)); steps that end at
+    # 0.3, just before 0.6 and start just after it (the field evaluated anew), none.
+    kw = dict(stepsize_controller=diffrax.PIDController(rtol=1e-4, atol=1e-4, step_ts=[0.3], jump_ts=[0.6]),
+              saveat=jnp.asarray(ts))
+    got = hj.simulate_batch(FORCED, jnp.asarray(x0[:, None]), "m", 0.0, 1.2, engine="batched", **kw)
+    assert list(got.status_name) == ["T1_REACHED"] * 3
+    np.testing.assert_array_equal(got.num_events, [1, 1, 1])
+    for i in range(3):
+        # the event: (t* - 0.3)^2 / 2 + t* - 0.6 = 0.5 - x0 (t* > 0.6)
+        t_star = 0.3 - 1 + math.sqrt(1 + 2 * (0.8 - x0[i]))
+        np.testing.assert_allclose(got.event_times[i, 0], t_star, rtol=1e-12)
+        saved = [_forced(x0[i], s) - (s > t_star) for s in ts]
+        np.testing.assert_allclose(got.ys[i, :, 0], saved, atol=1e-12)
+        np.testing.assert_allclose(got.final_state[i, 0], _forced(x0[i], 1.2) - 1, atol=1e-12)
+    want = hj.simulate_batch(FORCED, jnp.asarray(x0[:, None]), "m", 0.0, 1.2, engine="vmap", **kw)
+    np.testing.assert_array_equal(got.num_steps, want.num_steps)
+    np.testing.assert_array_equal(got.num_rejected, want.num_rejected)
+    np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-12)
+    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-12)
