@@ -29,7 +29,9 @@ The rules (`_rules`), the per-lane pieces (`Kernels`, diffrax's interpolation an
 ones `Loop` uses, so both engines make the same decisions; `tests/test_engines.py` holds them
 to each other. The dense output at the guard samples uses weights w(theta) with
 y(theta) = a y0 + b y1 + sum_i c_i k_i, read off diffrax's own interpolation (it is linear in
-y0, y1, k) once at trace time.
+y0, y1, k) once at trace time. An implicit solver (ImplicitEuler, Kvaerno3/4/5), whose stages
+are root finds, takes diffrax's own `solver.step` mapped over the lanes (`mapped_step`); its
+stage increments feed the same dense output, and its error estimate the same step-size rule.
 """
 
 import functools

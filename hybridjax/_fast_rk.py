@@ -15,7 +15,8 @@ dense output is diffrax's own interpolation class for the solver, fed the same `
 
 `FastIController` is diffrax's `PIDController` step-size rule for its default coefficients
 (an I controller: pcoeff = dcoeff = 0, icoeff = 1) without the bookkeeping its general form
-carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
+carries (dtmin/dtmax clipping, previous errors; step_ts and jump_ts, which diffrax wraps
+around it, are the loops' own rule, `_rules.clip_to_times`, see `split_clip`):
 
     e = RMS_i( err_i / (atol + rtol max(|y0_i|, |y1_i|)) ),   keep = e < 1,
     factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),

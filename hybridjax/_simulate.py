@@ -284,7 +284,10 @@ def simulate(
       they take the float type of the state they meet); `sol.args` holds them so converted.
     - `solver`: a diffrax solver (default `Tsit5()`); implicit ones (`Kvaerno5()`) work.
     - `stepsize_controller`: a diffrax controller; default `PIDController(rtol=1e-8,
-      atol=1e-8)` in float64, `1e-5` in float32.
+      atol=1e-8)` in float64, `1e-5` in float32. `PIDController(step_ts=..., jump_ts=...)`
+      as in diffrax: a step ends at each step time; at a jump time (a discontinuity of the
+      flow in t) a step ends just before it and the next starts just after it, the flow
+      evaluated anew.
     - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
       t1=...)`.
     - `dt0`: first step size of every epoch; default: from the tolerances (Hairer's rule) for
@@ -316,7 +319,7 @@ def simulate(
       `stepsize_controller.adapt_step_size`. `"fast"`: the same step from the solver's Butcher
       tableau with the stages unrolled, and the same I-controller rule written out (requires
       one of Heun, Midpoint, Ralston, Bosh3, Tsit5, Dopri5, Dopri8 and a
-      `PIDController` with default coefficients and no dtmin/dtmax/step_ts/jump_ts); the
+      `PIDController` with default coefficients and no dtmin/dtmax); the
       same steps to rounding, faster under `vmap` (the docs' Work-precision page).
       `"auto"` (default): `"fast"` where it applies, `"diffrax"` otherwise.
     - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.

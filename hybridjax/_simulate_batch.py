@@ -109,9 +109,11 @@ def simulate_batch(
     batch), every execution advances one solver step per iteration with its own time, step
     size, mode and events, and the work only some executions need in an iteration (the
     epoch-start test, root location, resets) is done on those executions alone, gathered into
-    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a `PIDController`
-    (any coefficients, `dtmin`, `dtmax`); `benchmarks/work_precision.py` measures it against
-    `vmap(simulate)`.
+    a block. For the explicit Runge-Kutta solvers of `engine="fast"` (their stages written out
+    over the batch) and diffrax's implicit ImplicitEuler, Kvaerno3, Kvaerno4 and Kvaerno5
+    (diffrax's own `solver.step`, mapped over the executions), with a `PIDController` (any
+    coefficients, `dtmin`, `dtmax`, `step_ts`, `jump_ts`); `benchmarks/work_precision.py`
+    measures it against `vmap(simulate)`.
 
     **Arguments** (as `simulate`, except):
 
@@ -125,9 +127,11 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine: implicit solvers, `step_ts`/`jump_ts`,
-      `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
-    - `saveat`: as `simulate`; the same save times for every execution.
+      Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
+      controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
+    - `saveat`: as `simulate`; the same save times for every execution, but
+      `SaveAt(t0=True, t1=True)`, which saves each execution at its own `t0` and `t1`
+      (`sol.ts` per execution).
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
