@@ -18,7 +18,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._system import HybridSystem, Mode, Transition
+from ._definition.system import HybridSystem, Mode, Transition
 
 # ----------------------------------------------------------------------------- ball
 

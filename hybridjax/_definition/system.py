@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._validation import check_function_shapes
+from .._definition.validation import check_function_shapes
 
 
 def _identity_reset(t, x, args):

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._kernels import Kernels
+from .._definition.kernels import Kernels
 
 CHUNK = 128
 MAX_STEPS = 16384

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._system import HybridSystem, Transition
+from .._definition.system import HybridSystem, Transition
 
 
 def _chain(system: HybridSystem, transition) -> list[int]:

@@ -25,9 +25,9 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike, Float
 
-from ._saltation import variational_jacobian
-from ._simulate import simulate
-from ._system import HybridSystem, Transition
+from .._analysis.saltation import variational_jacobian
+from .._definition.system import HybridSystem, Transition
+from .._solve.simulate import simulate
 
 
 class PeriodicOrbit(NamedTuple):

@@ -12,20 +12,20 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
-from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller, split_clip
-from ._loop import Loop
-from ._solution import Solution
-from ._status import Status
-from ._system import HybridSystem, as_mode_index
-from ._transforms import (
+from .._core.status import Status
+from .._core.transforms import (
     adjoint_for,
     derivative_modes,
     naming_the_forward_mode_fix,
     warn_if_forward_mode_beneath,
 )
-from ._validation import as_state_array, check_time_span
-from ._zeno import ZenoOptions, zeno_options
+from .._definition.system import HybridSystem, as_mode_index
+from .._definition.validation import as_state_array, check_time_span
+from .._engines.loop import Loop
+from .._rules.zeno import ZenoOptions, zeno_options
+from .._solution.solution import Solution
+from .._solve.eager import compiled_when_eager
+from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, can_use_fast_controller, split_clip
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:

@@ -10,16 +10,17 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import ArrayLike, Float, Int
 
-from ._batched import BatchedLoop, as_status, can_map_step
-from ._eager import compiled_when_eager
-from ._fast_rk import FastIController, UnrolledERK, can_batch_controller, can_unroll, split_clip
-from ._simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
-from ._solution import Solution
-from ._status import Status
-from ._system import HybridSystem
-from ._transforms import compiled_call_modes, naming_the_forward_mode_fix
-from ._validation import as_state_array, check_time_span
-from ._zeno import ZenoOptions, zeno_options
+from .._core.status import Status
+from .._core.transforms import compiled_call_modes, naming_the_forward_mode_fix
+from .._definition.system import HybridSystem
+from .._definition.validation import as_state_array, check_time_span
+from .._engines.batched import BatchedLoop, can_map_step
+from .._engines.lanes import as_status
+from .._rules.zeno import ZenoOptions, zeno_options
+from .._solution.solution import Solution
+from .._solve.eager import compiled_when_eager
+from .._solve.simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
+from .._step.runge_kutta import FastIController, UnrolledERK, can_batch_controller, can_unroll, split_clip
 
 
 def batched_engine_refusal(system: HybridSystem, solver, controller) -> str | None:

@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._simulate_batch import simulate_batch
-from ._status import STATUS_NAMES, Status
-from ._system import HybridSystem
+from .._core.status import STATUS_NAMES, Status
+from .._definition.system import HybridSystem
+from .._solve.simulate_batch import simulate_batch
 
 
 def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:

@@ -30,11 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._kernels import Kernels
-from ._rules import start_decision
-from ._search import box_samples, search
-from ._system import HybridSystem
-from ._validation import domain_sizes
+from .._analysis.search import box_samples, search
+from .._definition.kernels import Kernels
+from .._definition.system import HybridSystem
+from .._definition.validation import domain_sizes
+from .._rules.start import start_decision
 
 # Relations a query imposes on each watched function (guards, then domain components) of the
 # mode it is about, or of the target mode after a reset. `STRICT` relations keep a `margin`

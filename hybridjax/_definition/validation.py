@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# Set by `_eager.compiled_when_eager` around the trace of a call whose time span it checked.
+# Set by `_solve.eager.compiled_when_eager` around the trace of a call whose time span it checked.
 _TIME_SPAN_CHECKED = contextvars.ContextVar("hybridjax_time_span_checked", default=None)
 
 

@@ -1,6 +1,6 @@
 """The batched engine: N executions in one loop, their state as structure of arrays.
 
-`Loop` (`_loop.py`) is one execution; `jax.vmap` makes a batch of it, which stores every array
+`Loop` (`loop.py`) is one execution; `jax.vmap` makes a batch of it, which stores every array
 as (N, ...) and turns each per-execution selection into a copy of the whole state. Here the
 batch is explicit and *lanes-last*: the state is (n, N), one contiguous vector per component,
 so that the Runge-Kutta stages, the error norm, the step-size rule and the guard samples fuse
@@ -32,6 +32,9 @@ y(theta) = a y0 + b y1 + sum_i c_i k_i, read off diffrax's own interpolation (it
 y0, y1, k) once at trace time. An implicit solver (ImplicitEuler, Kvaerno3/4/5), whose stages
 are root finds, takes diffrax's own `solver.step` mapped over the lanes (`mapped_step`); its
 stage increments feed the same dense output, and its error estimate the same step-size rule.
+
+Beside this loop: the lanes' storage (`lanes.py`), the dense-output weights
+(`dense_weights.py`) and the XLA:CPU work-arounds with their invariants (`xla_cpu.py`).
 """
 
 import functools
@@ -46,7 +49,19 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
-from ._fast_rk import (
+from .._core.status import Status
+from .._definition.kernels import Kernels, mask_inputs
+from .._rules.detect import dip_filter, dip_interval
+from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
+from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.records import Detection, EpochStart
+from .._rules.save import saved_in_step
+from .._rules.start import carries_step, epoch_start
+from .._rules.status import stop_first
+from .._rules.step import nonfinite_step, step_stops
+from .._rules.tolerances import clip_to_times, event_time_tol, step_end
+from .._rules.zeno import ZenoOptions, detect_zeno
+from .._step.runge_kutta import (
     PIDState,
     UnrolledERK,
     explicit_rk_step,
@@ -56,122 +71,11 @@ from ._fast_rk import (
     scaled_error,
     weighted_sum,
 )
-from ._fast_rk import fold as _fold
-from ._kernels import Kernels, mask_inputs
-from ._rules import (
-    Detection,
-    EpochStart,
-    blocks,
-    carries_step,
-    clip_to_times,
-    dip_filter,
-    dip_interval,
-    epoch_start,
-    event_brackets,
-    event_point,
-    event_time_tol,
-    first_event,
-    jump_outcome,
-    nonfinite_step,
-    push_recent,
-    saved_in_step,
-    step_end,
-    step_stops,
-    stop_first,
-    zeno_completion,
-)
-from ._status import Status
-from ._zeno import ZenoOptions, detect_zeno
+from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
+from .lanes import Finals, LaneRecord, Lanes, _gather_lanes, _scatter_lanes, _take_lanes, default_block
+from .xla_cpu import _computed_once, _materialize, _rows_all, _rows_any, first_lanes, running_count
 
 sg = lax.stop_gradient
-
-
-class Lanes(eqx.Module):
-    """The running state of N executions, lanes last (see `LoopState` for the fields)."""
-
-    t: jax.Array  # (N,)
-    y: jax.Array  # (n, N)
-    mode: jax.Array
-    h: jax.Array
-    f0: jax.Array  # (n, N): F at (t, y), the first stage of the next step
-    at_start: jax.Array
-    done: jax.Array
-    status: jax.Array  # (N,) int32: `Status` codes
-    g_prev_slots: jax.Array  # (S, N): `LoopState.g_prev`, by slot (`Kernels.to_slots`)
-    num_events: jax.Array
-    zero_run: jax.Array
-    num_steps: jax.Array
-    num_rejected: jax.Array
-    zeno_time: jax.Array
-    zeno_state: jax.Array  # (n, N)
-    recent_times: jax.Array  # (R, N)
-    recent_states: jax.Array  # (3, n, N)
-    inv_error: jax.Array  # (N,) the step-size rule's history (`PIDState`; unused by an I controller)
-    prev_inv_error: jax.Array
-    at_dtmin: jax.Array
-    save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
-    t1: jax.Array  # (N,): the end time of each lane's execution
-    exec_id: jax.Array  # (N,) int32: the execution each lane runs (num_executions: none)
-    next_exec: jax.Array  # () int32: the first execution not yet given to a lane
-
-
-class Finals(eqx.Module):
-    """The final values of every execution, lanes last (`Lanes`' fields of the same name),
-    written when its lane finishes: with fewer lanes than executions, a lane runs several."""
-
-    t: jax.Array
-    y: jax.Array
-    mode: jax.Array
-    status: jax.Array
-    num_events: jax.Array
-    num_steps: jax.Array
-    num_rejected: jax.Array
-    zeno_time: jax.Array
-    zeno_state: jax.Array
-
-    @classmethod
-    def of(cls, st: "Lanes") -> "Finals":
-        return cls(**{f: getattr(st, f) for f in cls.__dataclass_fields__})
-
-
-class LaneRecord(eqx.Module):
-    """The events of the executions, in the `Solution`'s own arrays and dtypes (executions
-    first), written in place by a scatter per array in iterations with events: the loop's
-    output is the record itself, not a copy."""
-
-    # (N + 1, E): row N takes the writes of events not kept (`BatchedLoop.jump`); E >= 1
-    event_times: jax.Array
-    transitions: jax.Array  # int32
-    epoch_modes: jax.Array  # (N + 1, E + 1) int32, column 0 the initial mode
-    simultaneous: jax.Array  # bool
-    grazing: jax.Array  # bool
-    inside_guard: jax.Array  # bool
-    states_before: jax.Array  # (N + 1, E, n)
-    states_after: jax.Array  # (N + 1, E, n)
-    ys: jax.Array  # (N, S, n) saved states
-    saved_modes: jax.Array  # (N, S)
-    finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
-
-    def buffers(self) -> list:
-        """The event and final-value arrays, selected by attribute as `eqxi.while_loop`'s
-        `buffers` wants them. (Not the saved states: written from a nested loop inside a
-        `lax.cond`, as buffers their reverse-mode gradient came out NaN.)"""
-        skip = ("finals", "ys", "saved_modes")
-        events = [getattr(self, f) for f in self.__dataclass_fields__ if f not in skip]
-        finals = self.finals
-        if not isinstance(finals, Finals):  # None (tree_at sees it as a leaf)
-            return events
-        return events + [getattr(finals, f) for f in Finals.__dataclass_fields__]
-
-    def fields(self, num_exec: int, max_epochs: int) -> dict:
-        """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
-        column), where writes that are not kept land (see `BatchedLoop.jump`)."""
-        out = {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
-        for f in ("event_times", "transitions", "simultaneous", "grazing", "inside_guard", "states_before",
-                  "states_after"):
-            out[f] = out[f][:num_exec, :max_epochs]
-        out["epoch_modes"] = out["epoch_modes"][:num_exec, :max_epochs + 1]
-        return out
 
 
 def _stop(st: Lanes, *rules: tuple) -> Lanes:
@@ -179,93 +83,6 @@ def _stop(st: Lanes, *rules: tuple) -> Lanes:
     (`stop_first`), in one update of `done` and `status`: each update is a pass over every lane."""
     done, code = stop_first(st.done, st.status, *rules)
     return eqx.tree_at(lambda s: (s.done, s.status), st, (done, code))
-
-
-def as_status(codes) -> Status:
-    """A `Status` item holding the integer codes `codes` (one per lane)."""
-    return eqx.tree_at(lambda s: s._value, Status.T1_REACHED, jnp.asarray(codes, jnp.int32))
-
-
-def _rows_all(x):
-    return _fold(jnp.logical_and, x)
-
-
-def _rows_any(x):
-    return _fold(jnp.logical_or, x)
-
-
-def running_count(mask):
-    """Inclusive prefix count of `mask` (int32): `jnp.cumsum`'s value by a log-depth scan.
-
-    XLA:CPU lowers `cumsum` to a reduce-window, which is slow on wide vectors; the scan's
-    log2(N) elementwise levels are not."""
-    return lax.associative_scan(jnp.add, mask.astype(jnp.int32))
-
-
-def first_lanes(mask, size: int, count=None):
-    """Indices of the first `size` lanes where `mask` holds, in order, padded with N:
-    `jnp.nonzero(mask, size=size, fill_value=N)[0]` (two cumsums and a scatter-add there)
-    as one prefix count and one scatter. `count`:
-    `running_count(mask)`, where the caller has it."""
-    N = mask.shape[0]
-    count = running_count(mask) if count is None else count
-    slot = jnp.where(mask, count - 1, size)  # size: dropped
-    return jnp.full((size,), N, jnp.int32).at[slot].set(jnp.arange(N, dtype=jnp.int32), mode="drop")
-
-
-def default_block(lanes: int) -> int:
-    """The default block size: every lane up to 256 of them, else max(64, lanes // 32)."""
-    return lanes if lanes <= 256 else max(64, lanes // 32)
-
-
-def _take_lanes(a, idx):
-    """Lanes `idx` of a lanes-last array (an index past the last lane reads the last lane)."""
-    return jnp.take(a, idx, axis=-1, mode="clip")
-
-
-# The per-lane fields of `Lanes` (all but the queue's head, `next_exec`).
-_LANE_FIELDS = tuple(f for f in Lanes.__dataclass_fields__ if f != "next_exec")
-
-
-def _gather_lanes(st: Lanes, idx) -> Lanes:
-    """The lanes `idx` of `st` as a `Lanes` of their own (a block); `idx` None: `st` itself.
-    (Fields the block's update does not read are gathers without users: XLA removes them.)"""
-    if idx is None:
-        return st
-    return eqx.tree_at(lambda s: [getattr(s, f) for f in _LANE_FIELDS], st,
-                       [_take_lanes(getattr(st, f), idx) for f in _LANE_FIELDS])
-
-
-def _scatter_lanes(st: Lanes, gathered: Lanes, block: Lanes, idx) -> Lanes:
-    """`st` with lanes `idx` replaced by `block`, the update of `gathered` (`_gather_lanes`'
-    output): one scatter per field the update changed (by identity; indices >= N, a block's
-    spare slots, are dropped)."""
-    if idx is None:
-        return block
-    changed = [f for f in _LANE_FIELDS if getattr(block, f) is not getattr(gathered, f)]
-    return eqx.tree_at(lambda s: [getattr(s, f) for f in changed], st,
-                       [getattr(st, f).at[..., idx].set(getattr(block, f), mode="drop") for f in changed])
-
-
-def _materialize(tree, pred):
-    """`tree`, computed once into buffers: XLA:CPU gives each consumer of a shared elementwise
-    computation its own fusion and recomputes the shared part in each (the guard samples and
-    crossing tests, ~490 operations per lane, four times over), and it removes
-    `lax.optimization_barrier`; a conditional's operands are materialised. `pred` must be
-    data-dependent (a constant one is folded and the conditional inlined); where it is False
-    the values are zeros, so it must hold whenever they are used (here: some lane steps).
-    One process, N = 10,000, the guard samples and the crossing tests: -7 to -19 % run time
-    (oscillator with a guard, ball, thermostat, Van der Pol), identical results. The
-    conditional copies each array into its output: where the inputs of a computation are at
-    hand, `_computed_once` writes it there directly (the guard samples and the error norm now)."""
-    return _computed_once(lambda x: x, tree, pred)
-
-
-def _computed_once(fn, operands, pred):
-    """`fn(operands)` computed inside a conditional taken where `pred` holds (zeros where not;
-    `pred` as `_materialize`'s): its outputs are written once, by the fusions that compute them,
-    where `_materialize` copies values computed outside (one copy per array per iteration)."""
-    return lax.cond(pred, fn, lambda ops: jtu.tree_map(jnp.zeros_like, jax.eval_shape(fn, ops)), operands)
 
 
 def _detect(g_prev, G_e, D_e, times, pred) -> Detection:
@@ -306,112 +123,8 @@ def _detect(g_prev, G_e, D_e, times, pred) -> Detection:
     return Detection(has, j, suspect, i_d, x0_d)
 
 
-def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
-    """Weights of the solver's dense output on the unit interval at the fractions `thetas`.
-
-    Returns `(value, slope)`, each a list of (a, b, [c_i]) with
-    y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
-    are linear in y0, y1 and the stage increments k_i); computed at trace time, once per
-    (solver, thetas, dtype) in a process, by one small function compiled once per solver and
-    dtype (thetas padded to a multiple of `_THETA_PAD`, so that every call shares it).
-    (Evaluated op by op, each primitive would compile on its own.)
-    """
-    return _dense_weights(interpolation_cls, num_stages, tuple(float(t) for t in thetas),
-                          jnp.dtype(dtype).name)
-
-
-_THETA_PAD = 16
-
-
-@functools.lru_cache(maxsize=64)
-def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str):
-    m = len(thetas)
-    dtype = jnp.dtype(dtype)
-    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dtype)
-    th[:m] = thetas
-    eye = np.eye(2 + num_stages, dtype=dtype)  # basis: y0 = 1, y1 = 1, or one k_i = 1, the rest 0
-    basis = (th, eye[:, :1], eye[:, 1:2], eye[:, 2:, None])
-    both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(*basis)
-    out = []
-    for weights in both:
-        weights = np.asarray(weights)[:m, :, 0]  # (thetas, basis)
-        out.append([(float(w[0]), float(w[1]), [float(v) for v in w[2:]]) for w in weights])
-    return out
-
-
-@functools.lru_cache(maxsize=16)
-def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype: str):
-    """The compiled function behind `_dense_weights`: the interpolant and its theta-derivative
-    on the unit interval at each of `num_thetas` thetas, for each basis vector.
-
-    Compiled ahead of time, once per key, and called: it runs at once, even while the caller's
-    program is being traced (a jitted call would be staged into it; under
-    `ensure_compile_time_eval` each operation on constants inside it would be run, and
-    compiled, on its own)."""
-
-    def value(th, y0, y1, k):
-        one = jnp.ones_like(th)
-        return interpolation_cls(t0=0 * one, t1=one, y0=y0, y1=y1, k=k).evaluate(th)
-
-    def slope(th, y0, y1, k):
-        return jax.jvp(lambda s: value(s, y0, y1, k), (th,), (jnp.ones_like(th),))[1]
-
-    dtype = jnp.dtype(dtype)
-    B = 2 + num_stages
-    shapes = [jax.ShapeDtypeStruct(shape, dtype)
-              for shape in ((num_thetas,), (B, 1), (B, 1), (B, num_stages, 1))]
-    return jax.jit(lambda th, *b: [jax.vmap(jax.vmap(fn, in_axes=(None, 0, 0, 0)),
-                                            in_axes=(0, None, None, None))(th, *b)
-                                   for fn in (value, slope)]).lower(*shapes).compile()
-
-
 SAVE_WINDOW = 16  # sorted save times interpolated per pass
 PER_COMPONENT_MAX_DIM = 8  # `BatchedLoop.flows` traces the field once per component up to this
-CHEB_DEGREE = 9  # >= the degree in theta of every unrolled solver's dense output
-
-
-def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = CHEB_DEGREE):
-    """The solver's dense output y(theta) on the unit interval in the Chebyshev basis:
-    y(theta) = sum_m T_m(2 theta - 1) (A_m0 y0 + A_m1 y1 + sum_i A_m(2+i) k_i), exact for
-    polynomials of degree <= `degree` (the discrete Chebyshev transform at degree + 1 nodes,
-    well conditioned where monomial coefficients are not). Returns A as nested lists, one row
-    per degree up to the interpolant's own."""
-    nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
-    value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
-    V = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
-    T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
-    A = (2.0 / (degree + 1)) * T @ V
-    A[0] /= 2
-    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
-    # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
-    size = np.abs(A).max(axis=1)
-    keep = 1 + int(np.nonzero(size > 64 * np.finfo(dtype).eps * size.max())[0].max())
-    return A[:keep].tolist()
-
-
-class ChebyshevDense(eqx.Module):
-    """One lane's dense output as a Chebyshev series in x = 2 theta - 1 (Clenshaw's
-    recurrence): the same polynomial as diffrax's interpolation, evaluated without the small
-    matrix products that vmap turns into batched dots."""
-
-    t0: jax.Array
-    t1: jax.Array
-    coeffs: jax.Array  # (degree + 1, n)
-
-    @classmethod
-    def from_stages(cls, A, t0, t1, y0, y1, ks):
-        rows = [jnp.asarray(r[0], y0.dtype) * y0 + jnp.asarray(r[1], y0.dtype) * y1
-                + weighted_sum(r[2:], list(ks), y0) for r in A]
-        return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
-
-    def evaluate(self, t):
-        span = self.t1 - self.t0
-        theta = jnp.where(span == 0, 0.0, (t - self.t0) / jnp.where(span == 0, 1.0, span))
-        x = 2 * theta - 1
-        b1, b2 = jnp.zeros_like(self.coeffs[0]), jnp.zeros_like(self.coeffs[0])
-        for c in self.coeffs[:0:-1]:
-            b1, b2 = 2 * x * b1 - b2 + c, b1
-        return x * b1 - b2 + self.coeffs[0]
 
 
 # diffrax's implicit solvers for an ODE, whose dense output is linear in y0, y1 and the stage

@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, PyTree
 
-from ._solution import Solution
-from ._system import HybridSystem
+from .._definition.system import HybridSystem
+from .._solution.solution import Solution
 
 
 def rk4_flow(flow: Callable, t_a, t_b, x, substeps: int):

@@ -28,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._multiple_shooting import rk4_flow
-from ._saltation import saltation_matrix
-from ._simulate import simulate
-from ._system import HybridSystem
+from .._analysis.saltation import saltation_matrix
+from .._definition.system import HybridSystem
+from .._optimise.multiple_shooting import rk4_flow
+from .._solve.simulate import simulate
 
 
 class HybridLQRProblem(eqx.Module):

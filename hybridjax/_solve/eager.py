@@ -14,12 +14,12 @@ constant must. Compiled programs stay in memory until `jax.clear_caches()`, as w
 limit is 65,530 by default).
 
 This holds under `jax.grad`, `jax.vjp`, `jax.jacrev`, `jax.jvp`, `jax.jacfwd`, `jax.vmap` and
-their compositions, made outside `jax.jit` (`hybridjax._transforms.eager_at_top`): JAX
+their compositions, made outside `jax.jit` (`hybridjax._core.transforms.eager_at_top`): JAX
 differentiates and batches the compiled call (`jit` composes with them), and keeps what it
 compiles for the derivative or the batch, so a repeated `jax.grad` with new values compiles
 nothing. The derivatives taken at the call (forward, reverse) are part of the cache key, and
 the program is traced knowing them: under forward mode the default adjoint is replaced by one
-forward mode can go through (`hybridjax._transforms.adjoint_for`), and `simulate_batch` picks
+forward mode can go through (`hybridjax._core.transforms.adjoint_for`), and `simulate_batch` picks
 its defaults for a differentiated call.
 
 Left to the plain call: calls inside `jax.jit` (or `lax.scan`, `jax.checkpoint`, ...), which
@@ -39,14 +39,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from ._transforms import (
+from .._core.transforms import (
     adjoint_for,
     compiled_call,
     derivative_modes,
     eager_at_top,
     naming_the_forward_mode_fix,
 )
-from ._validation import _TIME_SPAN_CHECKED, _Ticket
+from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
 
 # The errors of code that needs a concrete value where the compiled call gives it a tracer.
 _NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,

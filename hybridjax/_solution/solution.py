@@ -10,10 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from . import _dense
-from ._kernels import Kernels
-from ._status import STATUS_NAMES, Status
-from ._system import HybridSystem
+from .._core.status import STATUS_NAMES, Status
+from .._definition.kernels import Kernels
+from .._definition.system import HybridSystem
+from . import dense as _dense
 
 
 def _solve_options(dtype, solver, stepsize_controller):

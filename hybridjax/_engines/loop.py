@@ -3,7 +3,7 @@
 Each iteration of one execution does, in order:
 
 1. `start_stage` (only at the start of an epoch): decide whether a guard fires at once
-   (a zero-length epoch, `_rules.epoch_start`); if not, choose the epoch's first step.
+   (a zero-length epoch, `_rules.start.epoch_start`); if not, choose the epoch's first step.
 2. `step_stage`: one step of the diffrax solver with diffrax's step-size controller; on an
    accepted step, `detect` crossings on the dense interpolant, `locate` the first one,
    `save` the requested times in the step, and `jump` (record the event and apply the reset).
@@ -40,32 +40,19 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
-from ._fast_rk import UnrolledERK
-from ._kernels import Kernels, mask_inputs
-from ._rules import (
-    Detection,
-    blocks,
-    carries_step,
-    clip_to_times,
-    dip_candidates,
-    dip_filter,
-    epoch_start,
-    event_brackets,
-    event_point,
-    event_time_tol,
-    first_crossings,
-    first_event,
-    jump_outcome,
-    nonfinite_step,
-    push_recent,
-    saved_in_step,
-    step_end,
-    step_stops,
-    stop_first,
-    zeno_completion,
-)
-from ._status import Status
-from ._zeno import ZenoOptions, detect_zeno
+from .._core.status import Status
+from .._definition.kernels import Kernels, mask_inputs
+from .._rules.detect import dip_candidates, dip_filter, first_crossings
+from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
+from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.records import Detection
+from .._rules.save import saved_in_step
+from .._rules.start import carries_step, epoch_start
+from .._rules.status import stop_first
+from .._rules.step import nonfinite_step, step_stops
+from .._rules.tolerances import clip_to_times, event_time_tol, step_end
+from .._rules.zeno import ZenoOptions, detect_zeno
+from .._step.runge_kutta import UnrolledERK
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many

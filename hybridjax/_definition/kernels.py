@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax import lax
 
-from ._system import HybridSystem
-from ._validation import domain_sizes
+from .._definition.system import HybridSystem
+from .._definition.validation import domain_sizes
 
 
 def mask_inputs(active, tree):

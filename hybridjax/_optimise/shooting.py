@@ -22,9 +22,9 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from ._simulate import simulate
-from ._solution import Solution
-from ._system import HybridSystem, Mode, Transition
+from .._definition.system import HybridSystem, Mode, Transition
+from .._solution.solution import Solution
+from .._solve.simulate import simulate
 
 
 def _value(spec, params):
