@@ -470,8 +470,8 @@ class Loop:
             any_event = jnp.array(False)
         ev_active = active & any_event
         if kern.num_watch:
-            dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
-            interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
+            dense_e, args_e, t_e, t_next_e = mask_inputs(ev_active, (dense_info, args, t, t_next))
+            interp_e = self.solver.interpolation_cls(t0=t_e, t1=t_next_e, **dense_e)
             t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp_e, args_e)
 
         # save: requested times inside (t, t_end], t_end the event time or the step's end;
