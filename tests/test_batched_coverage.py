@@ -115,8 +115,12 @@ def _ball_impact_times(h0, v0, g, e, count):
 def test_implicit_solver_in_the_batched_engine():
     # Kvaerno3's own step mapped over the lanes, its dense output (cubic Hermite) locating the
     # impacts; the step-size rule the shared one.
-    kw = dict(solver=diffrax.Kvaerno3(), stepsize_controller=TIGHT, saveat=jnp.linspace(0.0, 1.2, 5),
-              args_batched=True)
+    kw = dict(
+        solver=diffrax.Kvaerno3(),
+        stepsize_controller=TIGHT,
+        saveat=jnp.linspace(0.0, 1.2, 5),
+        args_batched=True,
+    )
     got = hj.simulate_batch(BALL, X0, "flight", 0.0, 1.2, ARGS, engine="batched", **kw)
     # the second ball accumulates its impacts at 0.96 (`examples.zeno_time`)
     assert list(got.status_name) == ["T1_REACHED", "ZENO", "T1_REACHED"]
@@ -139,8 +143,11 @@ def test_per_execution_t0_t1_saves_in_the_batched_engine():
     # SaveAt(t0=True, t1=True): each execution saves at its own t0 and t1.
     t0, t1 = jnp.array([0.0, 0.1, 0.2]), jnp.array([0.3, 0.7, 1.0])
     ts = np.array([0.25, 0.5])
-    kw = dict(saveat=diffrax.SaveAt(t0=True, t1=True, ts=jnp.asarray(ts)), stepsize_controller=TIGHT,
-              args_batched=True)
+    kw = dict(
+        saveat=diffrax.SaveAt(t0=True, t1=True, ts=jnp.asarray(ts)),
+        stepsize_controller=TIGHT,
+        args_batched=True,
+    )
     got = hj.simulate_batch(BALL, X0, "flight", t0, t1, ARGS, engine="batched", **kw)
     assert list(got.status_name) == ["T1_REACHED"] * 3
     for i in range(3):
@@ -163,8 +170,13 @@ def test_per_execution_t0_t1_saves_in_the_batched_engine():
 # (a jump time); x reaching 0.5 resets it to x - 1. Piecewise a polynomial of degree 1 in t,
 # which Tsit5 integrates exactly on each step that does not straddle 0.3 or 0.6.
 FORCED = hj.HybridSystem(
-    [hj.Mode("m", lambda t, x, p: (jnp.maximum(t - 0.3, 0.0) + jnp.where(t < 0.6, 0.0, 1.0)) * jnp.ones_like(x),
-             dim=1)],
+    [
+        hj.Mode(
+            "m",
+            lambda t, x, p: (jnp.maximum(t - 0.3, 0.0) + jnp.where(t < 0.6, 0.0, 1.0)) * jnp.ones_like(x),
+            dim=1,
+        )
+    ],
     [hj.Transition("m", "m", guard=lambda t, x, p: 0.5 - x[0], reset=lambda t, x, p: x - 1.0)],
 )
 
@@ -179,8 +191,10 @@ def test_step_ts_and_jump_ts_in_the_batched_engine():
     # Loose tolerances: a step across 0.3 or 0.6 leaves an error of 1e-5 to 1e-3 here (without
     # step_ts / jump_ts, 6.6e-5 at the kink and 3.7e-3 at the jump in x(1)); steps that end at
     # 0.3, just before 0.6 and start just after it (the field evaluated anew), none.
-    kw = dict(stepsize_controller=diffrax.PIDController(rtol=1e-4, atol=1e-4, step_ts=[0.3], jump_ts=[0.6]),
-              saveat=jnp.asarray(ts))
+    kw = dict(
+        stepsize_controller=diffrax.PIDController(rtol=1e-4, atol=1e-4, step_ts=[0.3], jump_ts=[0.6]),
+        saveat=jnp.asarray(ts),
+    )
     got = hj.simulate_batch(FORCED, jnp.asarray(x0[:, None]), "m", 0.0, 1.2, engine="batched", **kw)
     assert list(got.status_name) == ["T1_REACHED"] * 3
     np.testing.assert_array_equal(got.num_events, [1, 1, 1])

@@ -76,8 +76,13 @@ def test_clip_to_times_ends_steps_at_step_times_and_steps_over_jump_times():
     assert clip(0.0, 1.0, step_ts=[0.5], jump_ts=[0.5]) == (0.0, down(0.5), False)
     assert clip(down(0.5), 1.0, step_ts=[0.5], jump_ts=[0.5]) == (up(0.5), 1.0, True)
     # lanes broadcast
-    t, t_next, jumped = R.clip_to_times(jnp.array([0.0, down(0.6)]), jnp.array([1.0, 1.0]), jnp.asarray(10.0),
-                                        jnp.array([0.3]), jnp.array([0.6]))
+    t, t_next, jumped = R.clip_to_times(
+        jnp.array([0.0, down(0.6)]),
+        jnp.array([1.0, 1.0]),
+        jnp.asarray(10.0),
+        jnp.array([0.3]),
+        jnp.array([0.6]),
+    )
     np.testing.assert_array_equal(t, [0.0, up(0.6)])
     np.testing.assert_array_equal(t_next, [0.3, 1.0])
     np.testing.assert_array_equal(jumped, [False, True])
