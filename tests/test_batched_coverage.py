@@ -210,3 +210,26 @@ def test_step_ts_and_jump_ts_in_the_batched_engine():
     np.testing.assert_array_equal(got.num_rejected, want.num_rejected)
     np.testing.assert_allclose(got.event_times, want.event_times, rtol=1e-12)
     np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-12)
+
+
+def test_implicit_solver_gradient_in_the_batched_engine():
+    # d t_1 / d h0 = 1 / sqrt(2 g h0): the first impact of a ball dropped from rest, through
+    # Kvaerno3's root finds mapped over the lanes
+    def first_impacts(h0):
+        x0 = jnp.stack([h0, jnp.zeros(3)], 1)
+        sol = hj.simulate_batch(
+            BALL,
+            x0,
+            "flight",
+            0.0,
+            0.5,
+            ARGS,
+            args_batched=True,
+            solver=diffrax.Kvaerno3(),
+            stepsize_controller=TIGHT,
+            engine="batched",
+        )
+        return sol.event_times[:, 0].sum()
+
+    h0 = jnp.array([1.0, 0.5, 0.8])
+    np.testing.assert_allclose(jax.grad(first_impacts)(h0), 1 / np.sqrt(2 * 9.8 * h0), rtol=1e-7)
