@@ -54,6 +54,40 @@ def test_step_end_moves_t_by_at_least_one_ulp_and_stops_at_t1():
     assert float(R.step_end(jnp.asarray(9.8), 1.0, 10.0)) == 10.0
 
 
+def test_clip_to_times_ends_steps_at_step_times_and_steps_over_jump_times():
+    # diffrax's ClipStepSizeController rule, by hand: a step ends at the next step time, just
+    # before the next jump time, and the step after starts just after the jump time.
+    up, down = (lambda x: float(np.nextafter(x, np.inf))), (lambda x: float(np.nextafter(x, -np.inf)))
+
+    def clip(t, t_next, t1=10.0, step_ts=None, jump_ts=None):
+        ts = [None if x is None else jnp.asarray(x) for x in (step_ts, jump_ts)]
+        t, t_next, jumped = R.clip_to_times(jnp.asarray(t), jnp.asarray(t_next), jnp.asarray(t1), *ts)
+        return float(t), float(t_next), bool(jumped)
+
+    assert clip(0.0, 1.0, step_ts=[0.3, 0.7]) == (0.0, 0.3, False)
+    assert clip(0.3, 1.0, step_ts=[0.3, 0.7]) == (0.3, 0.7, False)  # the next one after t
+    assert clip(0.8, 1.0, step_ts=[0.3, 0.7]) == (0.8, 1.0, False)  # none left
+    assert clip(0.0, 1.0, jump_ts=[0.6]) == (0.0, down(0.6), False)
+    assert clip(down(0.6), 1.0, jump_ts=[0.6]) == (up(0.6), 1.0, True)  # moved past it
+    assert clip(0.6, 1.0, jump_ts=[0.6]) == (up(0.6), 1.0, True)
+    assert clip(down(0.6), up(up(0.6)), jump_ts=[0.6]) == (up(0.6), up(up(0.6)), True)
+    assert clip(0.0, 0.6, t1=0.6, jump_ts=[0.6]) == (0.0, 0.6, False)  # at t1: not stepped before
+    # a time both: the step ends before it, the next one starts after it
+    assert clip(0.0, 1.0, step_ts=[0.5], jump_ts=[0.5]) == (0.0, down(0.5), False)
+    assert clip(down(0.5), 1.0, step_ts=[0.5], jump_ts=[0.5]) == (up(0.5), 1.0, True)
+    # lanes broadcast
+    t, t_next, jumped = R.clip_to_times(
+        jnp.array([0.0, down(0.6)]),
+        jnp.array([1.0, 1.0]),
+        jnp.asarray(10.0),
+        jnp.array([0.3]),
+        jnp.array([0.6]),
+    )
+    np.testing.assert_array_equal(t, [0.0, up(0.6)])
+    np.testing.assert_array_equal(t_next, [0.3, 1.0])
+    np.testing.assert_array_equal(jumped, [False, True])
+
+
 # ---------------------------------------------------------------------------- start of an epoch
 def test_trending_negative_reads_the_first_nonzero_lie_derivative():
     tn = lambda *a: bool(R.trending_negative(*(jnp.asarray(x) for x in a), EPS))  # noqa: E731

@@ -29,12 +29,15 @@ The rules (`_rules`), the per-lane pieces (`Kernels`, diffrax's interpolation an
 ones `Loop` uses, so both engines make the same decisions; `tests/test_engines.py` holds them
 to each other. The dense output at the guard samples uses weights w(theta) with
 y(theta) = a y0 + b y1 + sum_i c_i k_i, read off diffrax's own interpolation (it is linear in
-y0, y1, k) once at trace time.
+y0, y1, k) once at trace time. An implicit solver (ImplicitEuler, Kvaerno3/4/5), whose stages
+are root finds, takes diffrax's own `solver.step` mapped over the lanes (`mapped_step`); its
+stage increments feed the same dense output, and its error estimate the same step-size rule.
 
 Beside this loop: the lanes' storage (`lanes.py`), the dense-output weights
 (`dense_weights.py`) and the XLA:CPU work-arounds with their invariants (`xla_cpu.py`).
 """
 
+import functools
 from typing import NamedTuple
 
 import diffrax
@@ -56,10 +59,11 @@ from .._rules.save import saved_in_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
-from .._rules.tolerances import event_time_tol, step_end
+from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import ZenoOptions, detect_zeno
 from .._step.runge_kutta import (
     PIDState,
+    UnrolledERK,
     explicit_rk_step,
     has_history,
     pid_controller,
@@ -123,6 +127,43 @@ SAVE_WINDOW = 16  # sorted save times interpolated per pass
 PER_COMPONENT_MAX_DIM = 8  # `BatchedLoop.flows` traces the field once per component up to this
 
 
+# diffrax's implicit solvers for an ODE, whose dense output is linear in y0, y1 and the stage
+# increments (`dense_weights`): stepped by `BatchedLoop.mapped_step`.
+MAPPED_SOLVERS = (diffrax.ImplicitEuler, diffrax.Kvaerno3, diffrax.Kvaerno4, diffrax.Kvaerno5)
+
+
+def can_map_step(solver) -> bool:
+    """Whether the batched engine steps `solver` by mapping its own `step` over the lanes."""
+    return type(solver) in MAPPED_SOLVERS
+
+
+def mapped_solver_shape(solver, terms, n: int, lane_args, dtype) -> tuple[bool, int]:
+    """For a diffrax solver stepped as it is (`BatchedLoop.mapped_step`): whether it stores its
+    last stage for the next step (FSAL: its state is `(first_step, f)`), and how many stage
+    increments its dense output reads (0 where it reads none, e.g. a linear interpolation)."""
+    y = jnp.zeros((n,), dtype)
+    t0, t1 = jnp.zeros((), dtype), jnp.ones((), dtype)
+    a = (jnp.zeros((), jnp.int32), lane_args)
+    out = jax.eval_shape(lambda: solver.step(terms, t0, t1, y, a, solver.init(terms, t0, t1, y, a),
+                                             jnp.array(False)))
+    dense, state = out[2], out[3]
+    return state is not None, dense["k"].shape[0] if "k" in dense else 0
+
+
+@functools.cache
+def stage_interpolation(interpolation_cls, num_stages: int):
+    """`interpolation_cls` called as `dense_weights` calls it, with the stage increments `k`;
+    for a dense output that reads none (`num_stages` 0), a wrapper that drops them."""
+    if num_stages:
+        return interpolation_cls
+
+    def without_k(*, t0, t1, y0, y1, k):
+        del k
+        return interpolation_cls(t0=t0, t1=t1, y0=y0, y1=y1)
+
+    return without_k
+
+
 class LaneStart(NamedTuple):
     """A lane's epoch-start test (`g_start` by slot) and the reset of the transition that fires
     at once, if one does."""
@@ -167,7 +208,8 @@ class BatchedLoop:
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
                  zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
-                 block: int | tuple | None = None, save_ts=None):
+                 block: int | tuple | None = None, save_ts=None, save_t0: bool = False,
+                 save_t1: bool = False, step_ts=None, jump_ts=None):
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
@@ -175,7 +217,11 @@ class BatchedLoop:
         self.kern = Kernels(system, lane_args, dtype)
         self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
         self.solver, self.controller, self.dt0 = solver, controller, dt0
-        self.carry_step = carries_step(dt0, explicit=True)  # explicit solvers only (`first_step`)
+        self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
+        # `UnrolledERK`: the explicit step written lanes last; another (implicit) diffrax solver:
+        # its own `step` mapped over the lanes (`mapped_step`).
+        self.mapped = not isinstance(solver, UnrolledERK)
+        self.carry_step = carries_step(dt0, explicit=not self.mapped)  # (`first_step`)
         self.max_epochs, self.max_steps = max_epochs, max_steps
         self.interior_points, self.event_tol = interior_points, event_tol
         self.max_zero_epochs, self.zeno = max_zero_epochs, zeno
@@ -184,6 +230,11 @@ class BatchedLoop:
         self.eps = jnp.finfo(dtype).eps
         self.N = lanes
         self.save_ts = jnp.zeros((0,), dtype) if save_ts is None else save_ts
+        # `SaveAt(t0=True)` / `SaveAt(t1=True)`: the first / last save is each execution's own
+        # t0 / t1, not a time of `save_ts` (there a placeholder, -inf / inf: never reached by
+        # the shared save times' pass). At t0 the initial state (`init`); at t1 the state
+        # written by `save_at_t1`.
+        self.save_t0, self.save_t1 = save_t0, save_t1
         self.save_order = jnp.argsort(self.save_ts)
         self.save_sorted = self.save_ts[self.save_order]
         # Small batches compute the rare work on every lane; large ones on blocks of lanes/32
@@ -197,10 +248,15 @@ class BatchedLoop:
         self.rtol, self.atol = controller.rtol, controller.atol
         m = interior_points
         self.thetas = np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])
-        self.num_stages = len(solver.c) + 1
-        self.w_value, self.w_slope = dense_weights(solver.interpolation_cls, self.num_stages,
-                                                   self.thetas, dtype)
-        self.cheb = chebyshev_weights(solver.interpolation_cls, self.num_stages, dtype)
+        if self.mapped:
+            self.fsal, self.num_stages = mapped_solver_shape(solver, self.terms, self.kern.n, lane_args,
+                                                             dtype)
+            interpolation = stage_interpolation(solver.interpolation_cls, self.num_stages)
+        else:
+            self.fsal, self.num_stages = solver.fsal, len(solver.c) + 1
+            interpolation = solver.interpolation_cls
+        self.w_value, self.w_slope = dense_weights(interpolation, self.num_stages, self.thetas, dtype)
+        self.cheb = chebyshev_weights(interpolation, self.num_stages, dtype)
 
     # ------------------------------------------------------------------ helpers
     def lane_args(self, st: Lanes, idx=None):
@@ -312,7 +368,12 @@ class BatchedLoop:
         self.inputs = (t0, y0, mode0)
         N, n, E, dtype = self.num_exec, self.kern.n, self.max_epochs, self.dtype
         st = self.fresh(jnp.arange(self.N), self.N)
-        at_t0 = self.save_ts[None, :] <= t0[:, None]  # (N, S)
+        lane_ts = jnp.broadcast_to(self.save_ts, (N,) + self.save_ts.shape)  # (N, S)
+        if self.save_t0:
+            lane_ts = lane_ts.at[:, 0].set(t0)
+        if self.save_t1:
+            lane_ts = lane_ts.at[:, -1].set(self.t1)
+        at_t0 = lane_ts <= t0[:, None]
         ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dtype)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
         # One more row (execution N) and at least one column: events not kept are written
@@ -536,6 +597,23 @@ class BatchedLoop:
         return StepEvent(event=any_event, k=k, t_star=t_star, t_ev=t_ev, y_before=y_before, y_after=y_after,
                          simultaneous=simultaneous, grazing=grazing, next=nxt)
 
+    def mapped_step(self, mode, t, t_next, y, f0, args):
+        """The diffrax solver's own `step` from t to t_next on every lane (`jax.vmap` over the
+        lanes: for implicit solvers, whose stages are root finds). An FSAL solver's stored
+        first stage is the lane's `f0` (F at (t, y), fresh at an epoch's start), so no lane
+        re-evaluates it. Returns `(y1, ks, f_last, y_err)` lanes last, ks the stages'
+        increments of the dense output (none for a solver whose dense output is linear)."""
+
+        def one(m, t, t_next, y, f0, a):
+            state = (jnp.array(False), f0) if self.fsal else None
+            y1, y_err, dense, new_state, _ = self.solver.step(self.terms, t, t_next, y, (m, a), state,
+                                                              jnp.array(False))
+            k = dense.get("k", jnp.zeros((0,) + y.shape, y.dtype))
+            return y1, y_err, k, new_state[1] if self.fsal else f0
+
+        y1, y_err, k, f_last = self.lane_map(one, mode, t, t_next, y, f0, args=args)
+        return y1, list(k), f_last, y_err
+
     def step_stage(self, st: Lanes, rec: LaneRecord):
         kern, solver, c = self.kern, self.solver, self.controller
         num_watch, K = kern.num_watch, kern.num_transitions
@@ -544,21 +622,31 @@ class BatchedLoop:
         t, y, f0 = mask_inputs(stepping, (st.t, st.y, st.f0))
         args = self.lane_args(st)
         t_next = step_end(t, st.h, st.t1)
+        t_from = t  # the step's start before `clip_to_times`, for the saves
+        if self.step_ts is not None or self.jump_ts is not None:
+            t, t_next, jumped = clip_to_times(t, t_next, st.t1, self.step_ts, self.jump_ts)
+            if self.fsal and self.jump_ts is not None:  # past a jump time: the field anew
+                f0 = lax.cond(jnp.any(jumped), lambda: jnp.where(jumped, self.flows(st.mode, t, y, args), f0),
+                              lambda: f0)
         hh = t_next - t
-        if not solver.fsal:
-            f0 = self.flows(st.mode, t, y, args)
-        # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i apart,
-        # XLA computes each stage twice, in two fusions.
-        y1, ks, f_last = explicit_rk_step(
-            solver, lambda tt, z, scale: self.flows(st.mode, tt, z, args, scale=scale), t, y, hh, f0)
+        if self.mapped:
+            y1, ks, f_last, y_err = self.mapped_step(st.mode, t, t_next, y, f0, args)
+        else:
+            if not self.fsal:
+                f0 = self.flows(st.mode, t, y, args)
+            # The stages' increments k_i = h F_i come out of `flows` scaled: with F_i and h F_i
+            # apart, XLA computes each stage twice, in two fusions.
+            y1, ks, f_last = explicit_rk_step(
+                solver, lambda tt, z, scale: self.flows(st.mode, tt, z, args, scale=scale), t, y, hh, f0)
+            y_err = None
 
         def error_norm(ops):
-            y, y1, ks = ops
-            e = scaled_error(y, y1, rk_error_estimate(solver, ks, y), c.rtol, c.atol)
-            return e, _rows_all(jnp.isfinite(y1))
+            y, y1, ks, y_err = ops
+            err = rk_error_estimate(solver, ks, y) if y_err is None else y_err
+            return scaled_error(y, y1, err, c.rtol, c.atol), _rows_all(jnp.isfinite(y1))
 
         # Read by many fusions below, each of which would recompute it from the stages.
-        e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
+        e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks, y_err)), jnp.any(stepping))
         # The step-size rule of `FastIController`, per lane (a step with a non-finite value is
         # rejected and shrunk by `nonfinite_step`, whatever the rule proposes).
         pid = PIDState(st.inv_error, st.prev_inv_error, st.at_dtmin)
@@ -683,7 +771,7 @@ class BatchedLoop:
             new = _stop(new, (reached, Status.T1_REACHED))
             took, t_end = acc, sg(t_next)
         if self.save_ts.shape[0]:
-            new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks)
+            new, rec = self.save(new, rec, st.mode, took, t, t_next, t_end, y, y1, ks, t_from)
         # A non-finite step that cannot be shrunk any further stops the lane at the step's
         # start, where everything was finite.
         stops = step_stops(stuck, finite, h_new, sg(t), self.eps, new.num_steps, self.max_steps)
@@ -691,10 +779,11 @@ class BatchedLoop:
         return new, rec
 
     # ------------------------------------------------------------------ saved states
-    def save(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, y, y1, ks):
-        """Write the save times in (t, t_end] of each lane whose step was taken, from the step's
-        dense output (the pre-event state at an event time), SAVE_WINDOW sorted save times per
-        pass; a bounded loop of passes covers a step with more."""
+    def save(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, y, y1, ks, t_from):
+        """Write the save times in (t_from, t_end] of each lane whose step was taken, from the
+        step's dense output on [t, t_next] (the pre-event state at an event time; t_from <= t
+        the step's start before `clip_to_times` moved it past a jump time), SAVE_WINDOW sorted
+        save times per pass; a bounded loop of passes covers a step with more."""
         S = self.save_ts.shape[0]
         lanes = st.exec_id
         coeffs = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks).coeffs  # (D+1, n, N)
@@ -706,7 +795,7 @@ class BatchedLoop:
             rec, ptr = carry
             idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
-            ok = took & (idx < S) & saved_in_step(tt, sg(t), t_end)
+            ok = took & (idx < S) & saved_in_step(tt, sg(t_from), t_end)
             dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
             vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
@@ -721,7 +810,24 @@ class BatchedLoop:
                                    max_steps=-(-S // SAVE_WINDOW) + 1, kind=self.loop_kind)
 
         rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
+        if self.save_t1:
+            rec = self.save_at_t1(st, rec, mode, took, t, t_next, t_end, coeffs, t_from)
         return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
+
+    def save_at_t1(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, coeffs,
+                   t_from) -> LaneRecord:
+        """Write the last save, at each lane's own t1 (`SaveAt(t1=True)`), where t1 lies in the
+        step's (t_from, t_end] (`saved_in_step`; `save`'s arguments), from the step's dense output."""
+        hit = took & saved_in_step(st.t1, sg(t_from), t_end)
+
+        def put(rec):
+            vals = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs).evaluate(jnp.clip(st.t1, sg(t), sg(t_next)))
+            ids = jnp.where(hit, st.exec_id, self.num_exec)  # num_exec: dropped
+            ys = rec.ys.at[ids, -1].set(vals.T, mode="drop")
+            modes = rec.saved_modes.at[ids, -1].set(mode, mode="drop")
+            return eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, modes))
+
+        return lax.cond(jnp.any(hit), put, lambda r: r, rec)
 
     # ------------------------------------------------------------------ the loop
     def body(self, carry):

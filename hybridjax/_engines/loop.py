@@ -50,7 +50,7 @@ from .._rules.save import saved_in_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
-from .._rules.tolerances import event_time_tol, step_end
+from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import ZenoOptions, detect_zeno
 from .._step.runge_kutta import UnrolledERK
 
@@ -155,8 +155,11 @@ class Loop:
         loop_kind: str,
         checkpoints,
         dtype,
+        step_ts=None,
+        jump_ts=None,
     ):
         self.kern = Kernels(system, args, dtype)
+        self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
         self.zeno = zeno
         self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
@@ -403,8 +406,12 @@ class Loop:
         args_ext = (mode, args)
         t = st.t
         t_next = step_end(t, st.h, self.t1)
+        fresh_f = st.made_jump
+        if self.step_ts is not None or self.jump_ts is not None:
+            t, t_next, jumped = clip_to_times(t, t_next, self.t1, self.step_ts, self.jump_ts)
+            fresh_f = fresh_f | jumped  # past a jump time: the field evaluated anew
         y1, y_err, dense_info, solver_state, _ = self.solver.step(
-            self.terms, t, t_next, st.y, args_ext, st.solver_state, st.made_jump
+            self.terms, t, t_next, st.y, args_ext, st.solver_state, fresh_f
         )
         keep, nt0, nt1, made_jump, ctrl_state, _ = self.controller.adapt_step_size(
             t, t_next, st.y, y1, args_ext, y_err, self.error_order(), st.controller_state
@@ -463,8 +470,8 @@ class Loop:
             any_event = jnp.array(False)
         ev_active = active & any_event
         if kern.num_watch:
-            dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
-            interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
+            dense_e, args_e, t_e, t_next_e = mask_inputs(ev_active, (dense_info, args, t, t_next))
+            interp_e = self.solver.interpolation_cls(t0=t_e, t1=t_next_e, **dense_e)
             t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp_e, args_e)
 
         # save: requested times inside (t, t_end], t_end the event time or the step's end;
@@ -473,7 +480,9 @@ class Loop:
             if not self.save_ts.shape[0]:
                 return rec
             t_end = jnp.where(any_event, t_star, sg(t_next))
-            mask = keep & active & saved_in_step(self.save_ts, sg(t), t_end)
+            # From the step's start before `clip_to_times` moved it past a jump time: a save
+            # time in between is saved (at the moved start).
+            mask = keep & active & saved_in_step(self.save_ts, sg(st.t), t_end)
 
             def put_all(ys):
                 vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))

@@ -9,7 +9,8 @@ gathering and scattering of lanes, the while loop); what an execution *does* is 
 The rules, in the order an iteration meets them (docs: Architecture has the table of rules,
 functions and tests):
 
-- tolerances: `event_time_tol`, `step_end` (the t_next clamp);
+- tolerances: `event_time_tol`, `step_end` (the t_next clamp), `clip_to_times` (step_ts,
+  jump_ts);
 - the start of an epoch: `epoch_start` (`start_decision`: the trending-negative band and Lie
   derivatives; `first_step`, `departure_step_bound`);
 - a step: `nonfinite_step`, `step_collapsed`, `step_stops`;
@@ -78,5 +79,6 @@ from .status import stop_first as stop_first
 from .step import nonfinite_step as nonfinite_step
 from .step import step_collapsed as step_collapsed
 from .step import step_stops as step_stops
+from .tolerances import clip_to_times as clip_to_times
 from .tolerances import event_time_tol as event_time_tol
 from .tolerances import step_end as step_end

@@ -1,4 +1,5 @@
-"""Tolerances: the event-time tolerance and the end of a step."""
+"""Tolerances: the event-time tolerance and the end of a step (the step and jump times it is
+clipped to, too)."""
 
 import jax.numpy as jnp
 from jax import lax
@@ -26,3 +27,46 @@ def step_end(t, h, t1):
     leave it in place) and never passes the end time t1.
     """
     return jnp.minimum(jnp.maximum(t + h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), t1)
+
+
+def _time_at(ts, i):
+    """`ts[i]`, inf for i = len(ts) (no such time)."""
+    return jnp.where(i < ts.shape[0], ts[jnp.minimum(i, ts.shape[0] - 1)], jnp.inf)
+
+
+def _moved_past(ts, t, t1):
+    """t moved past a time s of `ts` (s < t1) that it lies on (to nextafter(s)) or just before
+    (t = prevbefore(s): to nextafter(s)); and whether it was."""
+    up = jnp.nextafter(t, jnp.inf)
+    s = _time_at(ts, jnp.searchsorted(ts, t, side="left"))  # the first time >= t
+    on, before = (s == t) & (s < t1), (s == up) & (s < t1)
+    return jnp.where(on, up, jnp.where(before, jnp.nextafter(up, jnp.inf), t)), on | before
+
+
+def clip_to_times(t, t_next, t1, step_ts, jump_ts):
+    """The step from t to t_next (`step_end`) clipped to the times the solver must step to,
+    diffrax's `ClipStepSizeController` rule (`PIDController(step_ts=..., jump_ts=...)`):
+
+    - a step time s: the step ends there, t_next = min(t_next, s), s the first of `step_ts`
+      after t (after nextafter(t): where a step ended just before a jump time equal to it);
+    - a jump time j, a discontinuity of the field: a step ends at prevbefore(j), the last
+      float before the first j > t, and the next starts at nextafter(j), with the state of
+      prevbefore(j) and the field evaluated anew there (`made_jump`). So that no stage reads
+      the field at j itself: which side's value it takes there is the user's definition's.
+
+    Jump times at or after t1 are not stepped to (the execution ends at t1). Elementwise in t,
+    t_next, t1 (lanes broadcast); `step_ts`, `jump_ts` sorted 1-D arrays or None. Returns
+    `(t, t_next, made_jump)`, t moved past a jump time it lies on, or just before.
+    """
+    t_sg = sg(t)
+    made_jump = jnp.zeros(jnp.shape(t), bool)
+    if step_ts is not None and step_ts.shape[0]:
+        past, _ = _moved_past(step_ts, t_sg, jnp.inf)
+        t_next = jnp.minimum(t_next, _time_at(step_ts, jnp.searchsorted(step_ts, past, side="right")))
+    if jump_ts is not None and jump_ts.shape[0]:
+        moved, made_jump = _moved_past(jump_ts, t_sg, t1)
+        t = t + (moved - t_sg)  # the derivative of t kept
+        t_next = jnp.maximum(jnp.nextafter(moved, jnp.inf), t_next)
+        j = _time_at(jump_ts, jnp.searchsorted(jump_ts, moved, side="right"))
+        t_next = jnp.minimum(jnp.where(j < t1, jnp.minimum(t_next, jnp.nextafter(j, -jnp.inf)), t_next), t1)
+    return t, t_next, made_jump

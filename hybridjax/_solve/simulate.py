@@ -25,7 +25,7 @@ from .._engines.loop import Loop
 from .._rules.zeno import ZenoOptions, zeno_options
 from .._solution.solution import Solution
 from .._solve.eager import compiled_when_eager
-from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
+from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, can_use_fast_controller, split_clip
 
 
 def _loop_kind(adjoint) -> tuple[str, int | None]:
@@ -106,8 +106,7 @@ def _choose_engine(engine: str, solver, controller):
         why = (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, "
                "Bosh3, Tsit5, Dopri5, Dopri8" if not fast_solver else
                f"stepsize_controller {controller!r} is not a PIDController with default "
-               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax, "
-               "step_ts or jump_ts")
+               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax")
         raise ValueError(f"engine='fast': {why}; use engine='diffrax' (or 'auto').")
     if fast_solver:
         solver = UnrolledERK(solver)
@@ -285,7 +284,10 @@ def simulate(
       they take the float type of the state they meet); `sol.args` holds them so converted.
     - `solver`: a diffrax solver (default `Tsit5()`); implicit ones (`Kvaerno5()`) work.
     - `stepsize_controller`: a diffrax controller; default `PIDController(rtol=1e-8,
-      atol=1e-8)` in float64, `1e-5` in float32.
+      atol=1e-8)` in float64, `1e-5` in float32. `PIDController(step_ts=..., jump_ts=...)`
+      as in diffrax: a step ends at each step time; at a jump time (a discontinuity of the
+      flow in t) a step ends just before it and the next starts just after it, the flow
+      evaluated anew.
     - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
       t1=...)`.
     - `dt0`: first step size of every epoch; default: from the tolerances (Hairer's rule) for
@@ -317,7 +319,7 @@ def simulate(
       `stepsize_controller.adapt_step_size`. `"fast"`: the same step from the solver's Butcher
       tableau with the stages unrolled, and the same I-controller rule written out (requires
       one of Heun, Midpoint, Ralston, Bosh3, Tsit5, Dopri5, Dopri8 and a
-      `PIDController` with default coefficients and no dtmin/dtmax/step_ts/jump_ts); the
+      `PIDController` with default coefficients and no dtmin/dtmax); the
       same steps to rounding, faster under `vmap` (the docs' Work-precision page).
       `"auto"` (default): `"fast"` where it applies, `"diffrax"` otherwise.
     - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
@@ -338,6 +340,8 @@ def simulate(
         max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
         interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
         zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
+    # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
+    controller, step_ts, jump_ts = split_clip(controller, dtype)
     solver, controller = _choose_engine(engine, solver, controller)
     args = promote_args(args, dtype)
 
@@ -364,6 +368,8 @@ def simulate(
         loop_kind=kind,
         checkpoints=checkpoints,
         dtype=dtype,
+        step_ts=step_ts,
+        jump_ts=jump_ts,
     )
     with naming_the_forward_mode_fix():
         st, rec = loop.run(t0, y0, m0)

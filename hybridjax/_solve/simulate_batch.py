@@ -14,26 +14,23 @@ from .._core.status import Status
 from .._core.transforms import compiled_call_modes, naming_the_forward_mode_fix
 from .._definition.system import HybridSystem
 from .._definition.validation import as_state_array, check_time_span
-from .._engines.batched import BatchedLoop
+from .._engines.batched import BatchedLoop, can_map_step
 from .._engines.lanes import as_status
 from .._rules.zeno import ZenoOptions, zeno_options
 from .._solution.solution import Solution
 from .._solve.eager import compiled_when_eager
 from .._solve.simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
-from .._step.runge_kutta import FastIController, UnrolledERK, can_batch_controller, can_unroll
+from .._step.runge_kutta import FastIController, UnrolledERK, can_batch_controller, can_unroll, split_clip
 
 
-def batched_engine_refusal(system: HybridSystem, solver, controller, saveat,
-                           per_lane_times: bool) -> str | None:
+def batched_engine_refusal(system: HybridSystem, solver, controller) -> str | None:
     """Why the batched engine cannot run this problem (None when it can)."""
-    if not can_unroll(solver):
+    if not (can_unroll(solver) or can_map_step(solver)):
         return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
-                "Tsit5, Dopri5, Dopri8")
+                "Tsit5, Dopri5, Dopri8, ImplicitEuler, Kvaerno3, Kvaerno4, Kvaerno5")
     if not can_batch_controller(controller):
-        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm, "
-                "Python-number coefficients and no step_ts or jump_ts")
-    if isinstance(saveat, diffrax.SaveAt) and (saveat.subs.t0 or saveat.subs.t1) and per_lane_times:
-        return "SaveAt(t0=True / t1=True) with per-execution t0 / t1 (pass the save times as an array)"
+        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm and "
+                "Python-number coefficients (step_ts, jump_ts allowed)")
     return None
 
 
@@ -113,9 +110,11 @@ def simulate_batch(
     batch), every execution advances one solver step per iteration with its own time, step
     size, mode and events, and the work only some executions need in an iteration (the
     epoch-start test, root location, resets) is done on those executions alone, gathered into
-    a block. For the explicit Runge-Kutta solvers of `engine="fast"` with a `PIDController`
-    (any coefficients, `dtmin`, `dtmax`); `benchmarks/work_precision.py` measures it against
-    `vmap(simulate)`.
+    a block. For the explicit Runge-Kutta solvers of `engine="fast"` (their stages written out
+    over the batch) and diffrax's implicit ImplicitEuler, Kvaerno3, Kvaerno4 and Kvaerno5
+    (diffrax's own `solver.step`, mapped over the executions), with a `PIDController` (any
+    coefficients, `dtmin`, `dtmax`, `step_ts`, `jump_ts`); `benchmarks/work_precision.py`
+    measures it against `vmap(simulate)`.
 
     **Arguments** (as `simulate`, except):
 
@@ -129,9 +128,11 @@ def simulate_batch(
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
       `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
-      Not on the batched engine: implicit solvers, `step_ts`/`jump_ts`,
-      `SaveAt(t0=True/t1=True)` with per-execution `t0`/`t1`.
-    - `saveat`: as `simulate`; the same save times for every execution.
+      Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
+      controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
+    - `saveat`: as `simulate`; the same save times for every execution, but
+      `SaveAt(t0=True, t1=True)`, which saves each execution at its own `t0` and `t1`
+      (`sol.ts` per execution).
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
@@ -210,8 +211,9 @@ def simulate_batch(
         system, x0_arr[0], lane_args, **opts)
     zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
     args = promote_args(args, dtype)
-    per_lane_times = np.ndim(t0_in) > 0 or np.ndim(t1_in) > 0
-    refusal = batched_engine_refusal(system, solver_p, controller, saveat, per_lane_times)
+    # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
+    controller, step_ts, jump_ts = split_clip(controller, dtype)
+    refusal = batched_engine_refusal(system, solver_p, controller)
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
     m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
@@ -227,7 +229,10 @@ def simulate_batch(
         one_mode = int(mode0) if np.ndim(mode0) == 0 else None  # None: per-execution modes
         x0_arr = jax.vmap(lambda x: _initial_state(system, x, one_mode, dtype))(x0_arr)
     y0 = x0_arr.astype(dtype)
-    save_ts = _save_times(saveat, t0[0], t1[0], dtype)  # SaveAt(t0/t1): scalar t0, t1 (see refusal)
+    # SaveAt(t0/t1): each execution's own, placeholders here (`BatchedLoop`'s save_t0, save_t1)
+    sub = saveat.subs if isinstance(saveat, diffrax.SaveAt) else None
+    save_t0, save_t1 = bool(sub is not None and sub.t0), bool(sub is not None and sub.t1)
+    save_ts = _save_times(saveat, jnp.array(-jnp.inf, dtype), jnp.array(jnp.inf, dtype), dtype)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1, t1_before_t0 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
@@ -249,19 +254,22 @@ def simulate_batch(
         # (benchmarks/gradient_cost.py).
         block = num_lanes
     # Everything the loop reads besides the executions' own rows: passed to each device whole.
-    shared = (system, FastIController(controller), event_tol_v, save_ts, None if args_batched else args)
+    shared = (system, FastIController(controller), event_tol_v, save_ts, step_ts, jump_ts,
+              None if args_batched else args)
     shared_arrays, shared_static = eqx.partition(shared, eqx.is_array)
 
     def solve(t0, y0, m0, t1, part_args, shared_arrays):
-        system_, controller_, event_tol_, save_ts_, args_ = eqx.combine(shared_arrays, shared_static)
+        system_, controller_, event_tol_, save_ts_, step_ts_, jump_ts_, args_ = eqx.combine(shared_arrays,
+                                                                                           shared_static)
+        stepper = UnrolledERK(solver_p) if can_unroll(solver_p) else solver_p  # else `mapped_step`
         loop = BatchedLoop(
             system_, t1=t1, args=part_args if args_batched else args_, args_axis=0 if args_batched else None,
-            solver=UnrolledERK(solver_p), controller=controller_, dt0=dt0,
+            solver=stepper, controller=controller_, dt0=dt0,
             max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
             event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
             zeno=zeno_opts,
             loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
-            save_ts=save_ts_)
+            save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1, step_ts=step_ts_, jump_ts=jump_ts_)
         final, rec = loop.run(t0, y0.T, m0)
         # Executions first, every output: the devices' parts are joined along that axis.
         return dict(**rec.fields(t0.shape[0], int(max_epochs)), num_events=final.num_events,
@@ -278,8 +286,13 @@ def simulate_batch(
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
     status = jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status"))
+    ts = jnp.broadcast_to(save_ts, (N,) + save_ts.shape)
+    if save_t0:
+        ts = ts.at[:, 0].set(t0)
+    if save_t1:
+        ts = ts.at[:, -1].set(t1)
     return Solution(
-        **out, status=as_status(status), ts=jnp.broadcast_to(save_ts, (N,) + save_ts.shape),
+        **out, status=as_status(status), ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
     )
 

@@ -15,7 +15,8 @@ dense output is diffrax's own interpolation class for the solver, fed the same `
 
 `FastIController` is diffrax's `PIDController` step-size rule for its default coefficients
 (an I controller: pcoeff = dcoeff = 0, icoeff = 1) without the bookkeeping its general form
-carries (step_ts, jump_ts, dtmin/dtmax clipping, previous errors):
+carries (dtmin/dtmax clipping, previous errors; step_ts and jump_ts, which diffrax wraps
+around it, are the loops' own rule, `_rules.clip_to_times`, see `split_clip`):
 
     e = RMS_i( err_i / (atol + rtol max(|y0_i|, |y1_i|)) ),   keep = e < 1,
     factor = clip(safety e^(-1/q), [1 if keep else factormin, factormax if keep else safety]),
@@ -114,6 +115,22 @@ def can_batch_controller(controller) -> bool:
                     and all(v is None or isinstance(v, (int, float)) for v in (c.dtmin, c.dtmax)))
     except jax.errors.ConcretizationTypeError:  # traced coefficients: the general controller
         return False
+
+
+def split_clip(controller, dtype) -> tuple[Any, Any, Any]:
+    """diffrax's `PIDController(step_ts=..., jump_ts=...)` is a `ClipStepSizeController` around
+    the `PIDController`: returns the controller inside and the times (sorted arrays of `dtype`,
+    None where not given), for `_rules.clip_to_times`; any other controller (a
+    `ClipStepSizeController` that stores rejected steps, too) as it is, with (None, None)."""
+    c = controller
+    if type(c) is not diffrax.ClipStepSizeController or c.store_rejected_steps is not None \
+            or c.callback_on_reject is not None:
+        return controller, None, None
+
+    def times(ts):
+        return None if ts is None else jnp.sort(jnp.asarray(ts, dtype).reshape(-1))
+
+    return c.controller, times(c.step_ts), times(c.jump_ts)
 
 
 def explicit_rk_step(tab, field, t0, y0, h, f0):
