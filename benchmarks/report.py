@@ -81,7 +81,7 @@ def work_precision(res: dict) -> list[str]:
                 "B: Van der Pol oscillator with relay feedback, C: thermostat, D: stiff relay; "
                 "`benchmarks/problems.py`), and hybridjax against what one would write without it. "
                 "hybridjax is `jax.jit(hj.simulate_batch)` (the batched engine, each batch split over the "
-                "JAX devices; `jax.vmap(hj.simulate)` for the implicit Kvaerno solvers, on one). Error: the "
+                "JAX devices; the rows of the implicit Kvaerno solvers in this run: `jax.vmap(hj.simulate)`, on one). Error: the "
                 "largest |final state - truth| over the batch (closed forms; for B a Dopri8 run at 1e-13 "
                 "that agrees with scipy's DOP853 at 1e-13 to "
                 f"{max(c['max_diff'] for c in res['work_precision']['B: Van der Pol relay']['reference_check']):.0e}"

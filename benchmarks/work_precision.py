@@ -7,8 +7,8 @@ For problems A-D (`problems.py`), all measured in one run on this machine:
   stiff D) and tolerance (rtol = atol = 1e-3 ... 1e-12), in float64 and float32; executions
   whose number of events differs from the truth are counted apart ("wrong");
 - event tolerance: problem A at rtol = 1e-9 for event_tol = 1e-4 ... 1e-12;
-- hybridjax is `jax.jit(hj.simulate_batch)` (the batched engine for the explicit RK solvers,
-  `vmap(simulate)` for the implicit ones);
+- hybridjax is `jax.jit(hj.simulate_batch)` (the batched engine, explicit and implicit
+  solvers);
 - baselines at Tsit5, rtol = atol = 1e-9: scipy `solve_ivp` (RK45 and DOP853) in a Python loop
   over epochs, a plain diffrax lock-step loop (`_baselines.py`: epochs in a bounded while loop,
   and in a `lax.while_loop`), and hybridjax's per-execution
@@ -56,7 +56,7 @@ _RUNNERS = {}
 def runner(problem, solver_name, dtype=jnp.float64, max_steps=20_000, engine="auto", devices=None):
     """jit(simulate_batch) with rtol = atol and event_tol traced: one compile per solver/dtype.
 
-    engine: "auto" (`simulate_batch`: the batched engine for explicit RK solvers), "vmap"
+    engine: "auto" (`simulate_batch`: the batched engine), "vmap"
     (`jax.vmap(simulate)`), "diffrax" (`jax.vmap(simulate(..., engine="diffrax"))`).
     devices: `simulate_batch`'s (None: every device, one per core here)."""
     key = (problem.name, solver_name, jnp.dtype(dtype).name, engine, devices)
