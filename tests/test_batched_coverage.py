@@ -52,6 +52,28 @@ def test_zeno_completions_in_the_batched_engine():
     np.testing.assert_allclose(got.ys, want.ys, rtol=1e-9, atol=1e-9)
 
 
+def test_zeno_completion_without_room_in_the_record_stops_after_the_last_event():
+    # Zeno is detected at the sixth impact (the completion is the seventh event with room), so
+    # with max_epochs = 5 the completion finds the record full: like any event, it is neither
+    # recorded nor applied, and the execution stops with MAX_EPOCHS at the state after the fifth
+    # impact. Dropped from rest: t_5 = t_1 (1 + 2 (e + e^2 + e^3 + e^4)), t_1 = sqrt(2 h0 / g),
+    # and the speed after it e^5 sqrt(2 g h0).
+    kw = dict(stepsize_controller=TIGHT, args_batched=True, max_epochs=5)
+    for engine in ("batched", "vmap"):
+        got = hj.simulate_batch(COMPLETED, X0, "flight", 0.0, 4.0, ARGS, engine=engine, **kw)
+        assert list(got.status_name) == ["MAX_EPOCHS"] * 3
+        np.testing.assert_array_equal(got.num_events, [5, 5, 5])
+        assert np.all(np.asarray(got.transitions) < COMPLETED.num_transitions)  # no completion recorded
+        np.testing.assert_array_equal(got.final_mode, [0, 0, 0])
+        np.testing.assert_allclose(got.final_state, got.states_after[:, -1], atol=1e-14)
+        for i in (0, 1):
+            h0, e = float(X0[i, 0]), float(E[i])
+            t1 = math.sqrt(2 * h0 / 9.8)
+            np.testing.assert_allclose(got.event_times[i, -1], t1 * (1 + 2 * sum(e**j for j in range(1, 5))),
+                                       rtol=1e-9)
+            np.testing.assert_allclose(got.final_state[i], [0.0, e**5 * math.sqrt(2 * 9.8 * h0)], atol=1e-8)
+
+
 def test_zeno_completion_gradient_in_the_batched_engine():
     # d t_inf / d h0 = (1 + e) / (1 - e) / sqrt(2 g h0), for a ball dropped from rest
     def total(h0):

@@ -488,14 +488,15 @@ class BatchedLoop:
             st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
                              (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
             if self.system.completions:
-                comp = self.lane_map(lambda m, zz, tt, xx, a: zeno_completion(self.kern, m, zz, tt, xx, a),
-                                     st.mode, z, t_inf, x_inf, args=args)
+                E = self.max_epochs
+                comp = self.lane_map(
+                    lambda m, zz, tt, xx, ne, a: zeno_completion(self.kern, m, zz, tt, xx, a, ne, E),
+                    st.mode, z, t_inf, x_inf, st.num_events, args=args,
+                )
                 completed = comp.completes
-                full = st.num_events >= self.max_epochs
-                rec = self.record(st, rec, completed & ~full, comp.index, comp.t, comp.target, comp.x,
-                                  comp.y_after)
-                st = self.begin_epoch(st, completed, completed & ~full, comp.t, comp.y_after, comp.target, 0)
-                st = _stop(st, (completed & full, Status.MAX_EPOCHS))
+                rec = self.record(st, rec, completed, comp.index, comp.t, comp.target, comp.x, comp.y_after)
+                st = self.begin_epoch(st, completed, completed, comp.t, comp.y_after, comp.target, 0)
+                st = _stop(st, (comp.no_room, Status.MAX_EPOCHS))
             st = _stop(st, (z & ~completed, Status.ZENO))
         return st, rec, completed
 

@@ -350,12 +350,14 @@ class Loop:
         stopped = _stop(st, (is_zeno, Status.ZENO))
         if not self.system.completions:
             return stopped
-        comp = zeno_completion(self.kern, st.mode, is_zeno, t_inf, x_inf, args)
+        comp = zeno_completion(
+            self.kern, st.mode, is_zeno, t_inf, x_inf, args, st.num_events, self.max_epochs
+        )
         st_c = mask_inputs(comp.completes, st)
         done = self._record(st_c, comp.index, comp.t, comp.x, comp.y_after, comp.target, jnp.array(False),
                             jnp.array(False))
         done = self._begin_epoch(done, comp.t, comp.y_after, comp.target, jnp.array(0, jnp.int32))
-        done = _stop(done, (st.num_events >= self.max_epochs, Status.MAX_EPOCHS))
+        stopped = _stop(st, (comp.no_room, Status.MAX_EPOCHS), (is_zeno, Status.ZENO))
         return _select(comp.completes, done, stopped)
 
     # ----------------------------------------------------------------- start of an epoch

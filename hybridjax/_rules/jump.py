@@ -42,17 +42,24 @@ def push_recent(window, value):
     return jnp.concatenate([window[1:], value[None].astype(window.dtype)])
 
 
-def zeno_completion(kern: Kernels, mode, is_zeno, t_inf, x_inf, args) -> ZenoCompletionStep:
+def zeno_completion(
+    kern: Kernels, mode, is_zeno, t_inf, x_inf, args, num_events, max_epochs: int
+) -> ZenoCompletionStep:
     """The completion of a Zeno execution: where Zeno is detected (`detect_zeno`) and `mode`
     has a `ZenoCompletion` c, the execution jumps at the accumulation time t_inf from the limit
     state x_inf through c's reset into c's target mode, recorded as the event of transition
     index K + c (A. D. Ames, H. Zheng, R. D. Gregg, S. Sastry, "Is there life after Zeno?",
-    ACC 2006). Elsewhere it stops with `ZENO`."""
+    ACC 2006). Like every event (`jump_outcome`) it needs room in the record: where
+    num_events >= max_epochs it is neither recorded nor applied (`no_room`: the execution stops
+    with `MAX_EPOCHS` after its last event). Where the mode has no completion, the execution
+    stops with `ZENO`."""
     c = kern.completion_of_mode[mode]
-    completes = is_zeno & (c >= 0)
+    has = is_zeno & (c >= 0)
+    room = num_events < max_epochs
+    completes = has & room
     c = jnp.maximum(c, 0)
     t_c, x_c, a_c = mask_inputs(completes, (t_inf, x_inf, args))
     y_after = kern.completion_reset(c, t_c, x_c, a_c)
     return ZenoCompletionStep(
-        completes, kern.num_transitions + c, kern.completion_targets[c], t_c, x_c, y_after
+        completes, kern.num_transitions + c, kern.completion_targets[c], t_c, x_c, y_after, has & ~room
     )

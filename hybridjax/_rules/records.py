@@ -64,6 +64,7 @@ class ZenoCompletionStep(NamedTuple):
     t: jax.Array  # the accumulation time t_inf (gradients cut where it does not complete)
     x: jax.Array  # the limit state x_inf (likewise)
     y_after: jax.Array  # the completion's reset of it
+    no_room: jax.Array  # Zeno detected, the mode has a completion, but the record is full
 
 
 class JumpOutcome(NamedTuple):
