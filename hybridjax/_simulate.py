@@ -13,8 +13,8 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
-from ._eager import compiled_when_eager
 from ._batched import BatchedLoop, as_status
+from ._eager import compiled_when_eager
 from ._fast_rk import (
     FastIController,
     UnrolledERK,
