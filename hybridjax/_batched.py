@@ -454,13 +454,8 @@ class BatchedLoop:
     def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
                  max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
                  zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
-                 block: int | tuple | None = None, save_ts=None, unvmap: bool = False):
+                 block: int | tuple | None = None, save_ts=None):
         self.num_exec = int(t1.shape[0])
-        # Whether any lane needs a branch, as its conditionals test it: with `unvmap`, across
-        # a caller's `jax.vmap` too (`eqxi.unvmap_any`), so that a vmap of this loop skips the
-        # rare work where no execution needs it (jnp.any there turns each conditional into a
-        # select that computes both branches).
-        self.any = eqxi.unvmap_any if unvmap else jnp.any
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
         lane_args = args if args_axis is None else jtu.tree_map(lambda a: a[0], args)
@@ -651,7 +646,7 @@ class BatchedLoop:
                               (jnp.where(ended & ~take, self.num_exec, new.exec_id), fresh.next_exec))
             return new, rec
 
-        return lax.cond(self.any(ended), run, lambda c: c, (st, rec))
+        return lax.cond(jnp.any(ended), run, lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ jump
     def record(self, st: Lanes, rec: LaneRecord, kept, k, t_ev, target, y_before, y_after,
@@ -773,7 +768,7 @@ class BatchedLoop:
             active_now = self.in_block(idx, active)
             start, y_after = self.lane_map(self._start_lane, st.t, st.y, st.mode, st.h, st.t1,
                                            args=self.lane_args(st_all, idx))
-            start, y_after = _materialize((start, y_after), self.any(active))
+            start, y_after = _materialize((start, y_after), jnp.any(active))
             fire = active_now & start.fire
             K = self.kern.num_transitions
             go = active_now & ~start.fire
@@ -791,7 +786,7 @@ class BatchedLoop:
             st = _stop(st, (active_now & ~start.finite, Status.NONFINITE))
             return _scatter_lanes(st_all, b0, st, idx), rec
 
-        return lax.cond(self.any(active), lambda c: self.on_block(active, run, c), lambda c: c, (st, rec))
+        return lax.cond(jnp.any(active), lambda c: self.on_block(active, run, c), lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ one step
     def _event_lane(self, step: "LaneStep", det: Detection, mode, s_ext, h_new, t1, args) -> "StepEvent":
@@ -850,7 +845,7 @@ class BatchedLoop:
             return e, _rows_all(jnp.isfinite(y1))
 
         # Read by many fusions below, each of which would recompute it from the stages.
-        e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), self.any(stepping))
+        e, finite_y1 = _computed_once(error_norm, sg((y, y1, ks)), jnp.any(stepping))
         # The step-size rule of `FastIController`, per lane (a step with a non-finite value is
         # rejected and shrunk by `nonfinite_step`, whatever the rule proposes).
         pid = PIDState(st.inv_error, st.prev_inv_error, st.at_dtmin)
@@ -883,7 +878,7 @@ class BatchedLoop:
                 return G_e, D_e, finite_G
 
             # Zeros where no lane steps: every use below is masked by `stepping`.
-            some_step = self.any(stepping)
+            some_step = jnp.any(stepping)
             ops = (sg(y), sg(y1), [sg(k) for k in ks], hs, times, st.mode, sg(args))
             G_e, D_e, finite_G = _computed_once(guard_samples, ops, some_step)
         else:
@@ -924,7 +919,7 @@ class BatchedLoop:
                                                 h_new, st.t1), idx),
                                     args=self.lane_args(st, idx))
                 # Each output feeds several fields' updates; computed once (`_materialize`).
-                out = _materialize(out, self.any(need))
+                out = _materialize(out, jnp.any(need))
                 back = ("t", "y", "f0", "g_prev_slots", "zero_run")
                 new = b0 = _gather_lanes(new_all, idx)
                 before = _gather_lanes(st, idx)
@@ -969,7 +964,7 @@ class BatchedLoop:
                 new, rec, t_end = carry
                 return _stop(new, (reached, Status.T1_REACHED)), rec, t_end
 
-            new, rec, t_end = lax.cond(self.any(need), some_events, no_events, (new, rec, sg(t_next)))
+            new, rec, t_end = lax.cond(jnp.any(need), some_events, no_events, (new, rec, sg(t_next)))
             took = acc
         else:
             new = _stop(new, (reached, Status.T1_REACHED))
@@ -1009,10 +1004,10 @@ class BatchedLoop:
             return rec, ptr + jnp.sum(ok, axis=0, dtype=ptr.dtype)
 
         def run(carry):
-            return eqxi.while_loop(lambda c: self.any(pending(c[1])), window, carry,
+            return eqxi.while_loop(lambda c: jnp.any(pending(c[1])), window, carry,
                                    max_steps=-(-S // SAVE_WINDOW) + 1, kind=self.loop_kind)
 
-        rec, ptr = lax.cond(self.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
+        rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
         return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
 
     # ------------------------------------------------------------------ the loop
@@ -1031,7 +1026,7 @@ class BatchedLoop:
     def _run(self, t0, y0, mode0) -> tuple[Finals, LaneRecord]:
         rounds = -(-self.num_exec // self.N)  # executions per lane, at most
         st, rec = eqxi.while_loop(
-            lambda c: self.any(~c[0].done) | (c[0].next_exec < self.num_exec),
+            lambda c: jnp.any(~c[0].done) | (c[0].next_exec < self.num_exec),
             self.body,
             self.init(t0, y0, mode0),
             max_steps=rounds * (self.max_steps + self.max_epochs + 2),

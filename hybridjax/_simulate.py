@@ -1,6 +1,5 @@
 """`simulate`: run one execution of a hybrid system (vmap it for many)."""
 
-import os
 import warnings
 from typing import Any
 
@@ -13,15 +12,8 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
-from ._batched import BatchedLoop, as_status
 from ._eager import compiled_when_eager
-from ._fast_rk import (
-    FastIController,
-    UnrolledERK,
-    can_batch_controller,
-    can_unroll,
-    can_use_fast_controller,
-)
+from ._fast_rk import FastIController, UnrolledERK, can_unroll, can_use_fast_controller
 from ._loop import Loop
 from ._solution import Solution
 from ._status import Status
@@ -346,8 +338,6 @@ def simulate(
         max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
         interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
         zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
-    one_lane = engine != "diffrax" and _one_lane_applies(solver, controller)
-    lane_solver, lane_controller = solver, controller
     solver, controller = _choose_engine(engine, solver, controller)
     args = promote_args(args, dtype)
 
@@ -357,14 +347,6 @@ def simulate(
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     t1, t1_before_t0 = check_time_span(t0, t1, "simulate", given=given)
-    if one_lane:
-        return _simulate_one_lane(
-            system, t0, y0, m0, t1, t1_before_t0, args, solver=lane_solver, controller=lane_controller,
-            dt0=dt0, save_ts=_save_times(saveat, t0, t1, dtype), max_epochs=int(max_epochs),
-            max_steps=int(max_steps), interior_points=int(interior_points), event_tol=event_tol,
-            max_zero_epochs=int(max_zero_epochs),
-            zeno=zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio), kind=kind,
-            checkpoints=checkpoints, dtype=dtype, throw=throw)
     loop = Loop(
         system,
         t1=t1,
@@ -417,35 +399,3 @@ def simulate(
         system=system,
     )
 
-
-
-def _one_lane_applies(solver, controller) -> bool:
-    """Whether `simulate` runs the batched engine with one lane: an experiment, switched on by
-    the environment variable HYBRIDJAX_ONE_LANE=1 (read at trace time), for the problems the
-    batched engine takes (`benchmarks/engine_ab.py` measures it against `Loop`)."""
-    return (os.environ.get("HYBRIDJAX_ONE_LANE") == "1" and can_unroll(solver)
-            and can_batch_controller(controller))
-
-
-def _simulate_one_lane(system, t0, y0, m0, t1, t1_before_t0, args, *, solver, controller, dt0, save_ts,
-                       max_epochs, max_steps, interior_points, event_tol, max_zero_epochs, zeno, kind,
-                       checkpoints, dtype, throw) -> Solution:
-    """`simulate`'s `Solution` from `BatchedLoop` with one lane (its branches tested across a
-    caller's `jax.vmap`: `unvmap=True`)."""
-    loop = BatchedLoop(
-        system, t1=t1[None], args=args, args_axis=None, solver=UnrolledERK(solver),
-        controller=FastIController(controller), dt0=dt0, max_epochs=max_epochs, max_steps=max_steps,
-        interior_points=interior_points, event_tol=event_tol, max_zero_epochs=max_zero_epochs, zeno=zeno,
-        loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=1, save_ts=save_ts, unvmap=True)
-    with naming_the_forward_mode_fix():
-        final, rec = loop.run(t0[None], y0[:, None], jnp.asarray(m0, jnp.int32)[None])
-    fields = {f: v[0] for f, v in rec.fields(1, max_epochs).items()}
-    status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, as_status(final.status[0]))
-    final_time = final.t[0]
-    if throw:
-        final_time = status.error_if(final_time, status != Status.T1_REACHED)
-    return Solution(
-        **fields, num_events=final.num_events[0], zeno_time=final.zeno_time[0],
-        zeno_state=final.zeno_state[:, 0], final_time=final_time, final_mode=final.mode[0],
-        final_state=final.y[:, 0], status=status, num_steps=final.num_steps[0],
-        num_rejected=final.num_rejected[0], ts=save_ts, t0=t0, x0=y0, mode0=m0, args=args, system=system)
