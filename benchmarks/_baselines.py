@@ -133,8 +133,8 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
     """
     # The dense output's Chebyshev coefficients as the batched engine reads them off diffrax's
     # interpolation (not retyped), and its trace-time weighted sum.
-    from hybridjax._batched import chebyshev_weights
-    from hybridjax._fast_rk import weighted_sum
+    from hybridjax._engines.dense_weights import chebyshev_weights
+    from hybridjax._step.runge_kutta import weighted_sum
 
     solver = diffrax.Tsit5()
     tab = type(solver).tableau

@@ -68,7 +68,7 @@ def sampler(key, m):
 def monte_carlo_calls(keep_programs: bool) -> list[dict]:
     """Three `monte_carlo` runs of 20,000 balls (chunks of 10,000), new keys; without
     `keep_programs` the kept programs are dropped before each, so that each compiles."""
-    from hybridjax import _montecarlo
+    from hybridjax._analysis import montecarlo as _montecarlo
 
     out = []
     _montecarlo._COMPILED.clear()

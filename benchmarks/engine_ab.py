@@ -10,14 +10,14 @@ compiled program. Entry points: one execution (`jax.jit(simulate)`), `jax.jit(ja
 and `jax.jit(simulate_batch)` over `--n` executions (x0 sampled as in problems.py), and the
 reverse-mode gradient (`jax.grad` of the sum of the final states) of one execution, of
 `jax.vmap(simulate)` and of `simulate_batch`. `--env-b NAME=VALUE` sets an environment variable
-in version B's processes alone (the same tree as A with a private switch, e.g.
-`HYBRIDJAX_ONE_LANE=1`). Float64, Tsit5, PIDController(rtol = atol = 1e-8), XLA's default flags. Also the lines of
-the engines and their rules in each tree (`_loop`, `_batched`, `_events`, `_rules`, `_fast_rk`,
-`_zeno`).
+in version B's processes alone (for one tree run both ways by a private switch read from the
+environment). Float64, Tsit5, PIDController(rtol = atol = 1e-8), XLA's default flags. Also the
+lines of the engines and their rules in each tree (the modules of `hybridjax/_engines`, `_rules`
+and `_step`, or, in a tree with the flat layout, `_loop`, `_batched`, `_events`, `_rules`,
+`_fast_rk` and `_zeno`).
 
     python benchmarks/engine_ab.py --a /path/to/old/tree --b .   # writes results/engine_ab.json
-    python benchmarks/engine_ab.py --a . --b . --env-b HYBRIDJAX_ONE_LANE=1 \
-        --entries "simulate,vmap(simulate),grad vmap(simulate)" --out results/engine_one_lane.json
+    python benchmarks/engine_ab.py --a /path/to/old/tree --b . --entries "simulate,grad vmap(simulate)"
 """
 
 import argparse
@@ -29,7 +29,8 @@ import sys
 import time
 
 HERE = pathlib.Path(__file__).resolve().parent
-ENGINE_FILES = ("_loop.py", "_batched.py", "_events.py", "_rules.py", "_fast_rk.py", "_zeno.py")
+ENGINE_FILES = ("_loop.py", "_batched.py", "_events.py", "_rules.py", "_fast_rk.py", "_zeno.py")  # flat layout
+ENGINE_PACKAGES = ("_engines", "_rules", "_step")
 PROBLEMS = ("ball", "vdp_relay", "thermostat")
 
 
@@ -91,7 +92,9 @@ def one(n: int, repeat: int, entries) -> dict:
 
 def lines(root: pathlib.Path) -> dict:
     pkg = root / "hybridjax"
-    counts = {f: len((pkg / f).read_text().splitlines()) for f in ENGINE_FILES if (pkg / f).exists()}
+    files = [pkg / f for f in ENGINE_FILES if (pkg / f).exists()]
+    files += [p for d in ENGINE_PACKAGES if (pkg / d).is_dir() for p in sorted((pkg / d).glob("*.py"))]
+    counts = {str(p.relative_to(pkg)): len(p.read_text().splitlines()) for p in files}
     return dict(files=counts, total=sum(counts.values()))
 
 

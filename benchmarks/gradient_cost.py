@@ -19,7 +19,7 @@ import numpy as np
 from _common import machine_info, timed, write_json
 
 import hybridjax as hj
-from hybridjax._batched import default_block
+from hybridjax._engines.lanes import default_block
 
 jax.config.update("jax_enable_x64", True)
 BALL = hj.examples.bouncing_ball()

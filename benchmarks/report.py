@@ -529,6 +529,36 @@ def first_call(res: dict) -> list[str]:
     return out
 
 
+def scenes(res: dict) -> list[str]:
+    out = _page("scenes", "Scenes: contact sets built and cost", res, "scenes.py",
+                f"A point inside a regular polygon of K walls (`hj.examples.polygon_particle(K)`), plastic impacts, "
+                f"built by `hj.contact_system` from the free set. N = {res['n']} executions of T = {res['t1']} s "
+                "from the free set, Tsit5, rtol = atol = 1e-8. *sets built* against the 2^K subsets of walls; "
+                "*modes* adds the terminal `unbuilt: <set>` modes of pruned transitions. Build: the point "
+                "search (its first compile included for the first form). Compile: XLA compile of "
+                "`jax.jit(hj.simulate_batch)`. Two ways of writing a mode's flow: *branch* solves with the "
+                "held walls only, *mask* with all K walls, those not held masked out.")
+    body = []
+    for r in res["rows"]:
+        body.append([r["K"], r["subsets"], r["modes_built"], r["modes"], r["transitions"],
+                     f"{r['branch_build_s']:.1f}", f"{r['branch_compile_s']:.1f}", _rate(r["branch_exec_per_s"]),
+                     f"{r['mask_compile_s']:.1f}" if "mask_compile_s" in r else "",
+                     _rate(r["mask_exec_per_s"]) if "mask_exec_per_s" in r else "",
+                     ", ".join(f"{k} {v}" for k, v in r["branch_statuses"].items())])
+    out += _table(["K", "2^K", "sets built", "modes", "transitions", "build s", "compile s (branch)",
+                   "executions/s (branch)", "compile s (mask)", "executions/s (mask)", "statuses"], body)
+    missing = sorted(set(range(1, 9)) - {r["K"] for r in res["rows"]})
+    if missing:
+        out += [f"K = {', '.join(map(str, missing))}: not in this run (`python benchmarks/scenes.py "
+                f"{' '.join(map(str, missing))}` adds them to the results file).", ""]
+    out += ["The sets built grow as 2K + 1 at most (free, each wall, the corners of adjacent walls), not as 2^K; "
+            "compile time grows with the modes and transitions built. `contact_system` uses the branch form by "
+            "default, the faster of the two here."]
+    return out
+
+
+
+
 def trajopt(res: dict) -> list[str]:
     out = _page("trajopt", "Trajectory optimisation: hybrid iLQR against gradient descent", res, "trajopt.py",
                 "Hybrid iLQR (`hj.hybrid_ilqr`) and `optax.adam` on `jax.grad` through `simulate` minimise the "
@@ -572,7 +602,7 @@ PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": b
          "guard_cost": guard_cost, "gradient_cost": gradient_cost, "compile_time": compile_time,
          "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits,
          "derivative_accuracy": derivative_accuracy, "first_call": first_call,
-         "trajopt": trajopt}
+         "trajopt": trajopt, "scenes": scenes}
 
 
 def property_checks(res: dict) -> list[str]:

@@ -30,7 +30,7 @@ import optax
 from _common import machine_info, write_json
 
 import hybridjax as hj
-from hybridjax._ilqr import _initial, _rollout
+from hybridjax._optimise.ilqr import _initial, _rollout
 
 jax.config.update("jax_enable_x64", True)
 G = 9.8

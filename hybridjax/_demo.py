@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import examples
-from ._simulate_batch import simulate_batch
-from ._status import STATUS_NAMES
+from ._core.status import STATUS_NAMES
+from ._solve.simulate_batch import simulate_batch
 
 
 def _timed(fn, *inputs, repeat: int = 3):

@@ -9,6 +9,8 @@
   Zeno truncation.
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
 - `integrate_and_fire`: a leaky integrate-and-fire neuron, a long spike train in closed form.
+- Scenes for `contact_system`: `wedge_particle` (the chapter's practice problem 1), `ball_scene`,
+  `ceiling_scene`, `polygon_particle` (a point inside K walls), `rimless_wheel_scene`, `rod_scene`.
 
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
@@ -18,7 +20,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._system import HybridSystem, Mode, Transition
+from ._definition.system import HybridSystem, Mode, Transition
+from ._scenes.scene import Constraint, Relabel, Scene
 
 # ----------------------------------------------------------------------------- ball
 
@@ -374,3 +377,187 @@ def integrate_and_fire_closed_form(current, tau, V0, num_spikes: int):
     """
     first = tau * jnp.log((current - V0) / (current - 1.0))
     return first + jnp.arange(num_spikes) * tau * jnp.log(current / (current - 1.0))
+
+
+# ----------------------------------------------------------------------------- scenes
+# Scenes (`hj.Scene`) whose hybrid systems `hj.contact_system` builds: modes are contact sets.
+
+
+def wedge_particle() -> Scene:
+    r"""A planar point particle of mass m above a floor and a line through the origin.
+
+    A. M. Johnson, "Hybrid Dynamical Systems", practice problem 1: q = (x, z), constraints
+    a_G = z >= 0 and a_H = -x sin(theta) + z cos(theta) >= 0, gravity -m g along z, plastic
+    impacts. `args = {"m", "g", "theta"}`; theta in (0, pi) sets which transitions are
+    achievable (see the scenes guide).
+    """
+
+    def a_H(t, q, p):
+        return -q[0] * jnp.sin(p["theta"]) + q[1] * jnp.cos(p["theta"])
+
+    return Scene(
+        dim=2,
+        mass=lambda q, p: p["m"] * jnp.eye(2),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1]]),
+        constraints=[Constraint("G", lambda t, q, p: q[1]), Constraint("H", a_H)],
+        q_range=(-1.0, 1.0),
+        dq_range=(-2.0, 2.0),
+        names=("x", "z"),
+    )
+
+
+def ball_scene() -> Scene:
+    r"""The bouncing ball as a scene: q = (h,), unit mass, gravity -g, a floor h >= 0 with
+    restitution `args["e"]`. Its system equals `bouncing_ball` (one mode, "free")."""
+    return Scene(
+        dim=1,
+        mass=lambda q, p: jnp.eye(1),
+        forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
+        constraints=[Constraint("floor", lambda t, q, p: q[0], restitution=lambda p: p["e"])],
+        q_range=(0.0, 2.0),
+        dq_range=(-5.0, 5.0),
+        names=("h",),
+    )
+
+
+def ceiling_scene() -> Scene:
+    r"""The ball thrown at a ceiling as a scene: q = (z,), unit mass, gravity -g, a ceiling
+    H - z >= 0 with plastic impact. Its system equals `ceiling_ball`: the contact force -g < 0
+    right after the impact lifts it off in a zero-length epoch."""
+    return Scene(
+        dim=1,
+        mass=lambda q, p: jnp.eye(1),
+        forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
+        constraints=[Constraint("ceiling", lambda t, q, p: p["H"] - q[0])],
+        q_range=(0.0, 2.0),
+        dq_range=(-5.0, 5.0),
+        names=("z",),
+    )
+
+
+def polygon_particle(num_walls: int) -> Scene:
+    r"""A planar point particle (unit mass, gravity -g) inside a regular polygon of `num_walls`
+    walls at distance r from the centre, plastic impacts.
+
+    Wall k has outward normal n_k = (sin(2 pi k / K), -cos(2 pi k / K)) (wall 0 is the floor) and
+    gap a_k = r - n_k . q >= 0. K = 1 is a floor, K = 2 a floor and a ceiling. Of the 2^K contact
+    sets only the free one, single walls and corners of adjacent walls can be reached.
+    `args = {"g", "r"}`.
+    """
+    K = int(num_walls)
+    if K < 1:
+        raise ValueError(f"polygon_particle: num_walls must be >= 1, got {num_walls}.")
+
+    def wall(k):
+        s, c = math.sin(2 * math.pi * k / K), math.cos(2 * math.pi * k / K)
+        return Constraint(f"w{k}", lambda t, q, p: p["r"] - (s * q[0] - c * q[1]))
+
+    return Scene(
+        dim=2,
+        mass=lambda q, p: jnp.eye(2),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["g"] + 0.0 * q[1]]),
+        constraints=[wall(k) for k in range(K)],
+        q_range=(-1.2, 1.2),
+        dq_range=(-3.0, 3.0),
+        names=("x", "z"),
+    )
+
+
+def rimless_wheel_scene(inertia: float = 0.1) -> tuple[Scene, Relabel]:
+    r"""McGeer's rimless wheel on a slope as a scene, with the relabelling of its spokes.
+
+    q = (x, z, phi): the hub in the slope's frame (x downhill, z normal to the slope) and the
+    angle of spoke 0 from the slope's normal; hub mass m, moment of inertia `inertia` * m l^2
+    about the hub (> 0: the mass matrix must be invertible; `rimless_wheel` is the limit 0). Spoke i (i = 0,
+    1, 2 spokes apart by 2 alpha) ends at (x - l sin(phi - 2 alpha i), z - l cos(phi - 2 alpha i));
+    its gap is that point's height and its tangent its x: a foot that touches sticks (plastic
+    impact, unlimited friction). Gravity m g (sin gamma, -cos gamma, 0).
+    `args = {"alpha", "gamma", "g", "l", "m"}`.
+
+    The relabelling identifies the contact set {spoke1} with {spoke0}: phi -> phi - 2 alpha and
+    the new foot moved to x = 0, so that the rolling gait is a periodic orbit. Returns
+    `(scene, relabel)`; build with `contact_system(scene, ["spoke0"], args, relabels=[relabel])`.
+    """
+    if not inertia > 0:
+        raise ValueError(f"rimless_wheel_scene: `inertia` must be > 0, got {inertia}.")
+
+    def tip(i):
+        def point(q, p):
+            th = q[2] - 2 * i * p["alpha"]
+            return q[0] - p["l"] * jnp.sin(th), q[1] - p["l"] * jnp.cos(th)
+
+        return point
+
+    def spoke(i):
+        return Constraint(
+            f"spoke{i}", lambda t, q, p: tip(i)(q, p)[1], tangent=lambda t, q, p: tip(i)(q, p)[0]
+        )
+
+    def mass(q, p):
+        ml2 = p["m"] * p["l"] ** 2
+        return jnp.diag(jnp.stack([p["m"], p["m"], inertia * ml2 + 0.0 * q[2]]))
+
+    def forces(t, q, dq, p):
+        w = p["m"] * p["g"]
+        return jnp.stack([w * jnp.sin(p["gamma"]), -w * jnp.cos(p["gamma"]), 0.0 * q[2]])
+
+    def next_stance(t, q, p):
+        x1 = tip(1)(q, p)[0]
+        return jnp.stack([q[0] - x1, q[1], q[2] - 2 * p["alpha"]])
+
+    scene = Scene(
+        dim=3,
+        mass=mass,
+        forces=forces,
+        constraints=[spoke(0), spoke(1)],
+        q_range=((-0.5, 0.5, -0.5), (0.5, 1.0, 0.5)),
+        dq_range=(-1.0, 1.0),
+        names=("x", "z", "phi"),
+    )
+    return scene, Relabel(("spoke1",), ("spoke0",), q_map=next_stance)
+
+
+def rimless_wheel_scene_closed_form(
+    alpha: float, gamma: float, g: float, length: float, inertia: float
+) -> dict:
+    """The rolling gait of `rimless_wheel_scene`, by hand.
+
+    Stance: (m l^2 + I) theta'' = m g l sin(theta + gamma), theta the stance spoke's angle
+    from the slope's normal, from -alpha to alpha; energy gives omega_-^2 = omega_+^2 +
+    4 kappa sin(alpha) sin(gamma), kappa = m g l / (m l^2 + I). The strike conserves angular
+    momentum about the new foot: omega_+' = c omega_-, c = (m l^2 cos(2 alpha) + I) / (m l^2 + I).
+    Fixed point omega*^2 = 4 c^2 kappa sin(alpha) sin(gamma) / (1 - c^2); return-map
+    multiplier c^2. The state just after a strike: hub at (-l sin(alpha), l cos(alpha)), phi =
+    -alpha, velocities of a rotation omega* about the foot at the origin.
+    """
+    kappa = g / (length * (1.0 + inertia))
+    c = (math.cos(2 * alpha) + inertia) / (1.0 + inertia)
+    w = math.sqrt(4 * c * c * kappa * math.sin(alpha) * math.sin(gamma) / (1 - c * c))
+    th = -alpha
+    q = np.array([length * math.sin(th), length * math.cos(th), th])
+    dq = np.array([length * w * math.cos(th), -length * w * math.sin(th), w])
+    return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
+
+
+def rod_scene() -> Scene:
+    r"""A rod of mass m and length L falling in a vertical plane onto a frictionless floor.
+
+    q = (x, z, phi): the centre and the angle from horizontal; M = diag(m, m, m L^2 / 12);
+    gravity -m g along z. Its ends are the contacts "left" (gap z - (L/2) sin phi) and "right"
+    (gap z + (L/2) sin phi), plastic. Dropped tilted, it lands on its lower end, pivots and slides
+    on it, then lands on the other: which end hits first, whether the first one is released and
+    whether it comes to rest depend on the order of these events. `args = {"m", "g", "L"}`.
+    """
+
+    def end(sign):
+        return lambda t, q, p: q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])
+
+    return Scene(
+        dim=3,
+        mass=lambda q, p: jnp.diag(jnp.stack([p["m"], p["m"], p["m"] * p["L"] ** 2 / 12 + 0.0 * q[2]])),
+        forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1], 0.0 * q[2]]),
+        constraints=[Constraint("left", end(-1.0)), Constraint("right", end(1.0))],
+        q_range=((-0.5, 0.0, -1.0), (0.5, 1.0, 1.0)),
+        dq_range=(-2.0, 2.0),
+        names=("x", "z", "phi"),
+    )

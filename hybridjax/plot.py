@@ -45,7 +45,7 @@ except ImportError as err:  # pragma: no cover - exercised only without matplotl
 
 from matplotlib.lines import Line2D
 
-from ._status import STATUS_NAMES
+from ._core.status import STATUS_NAMES
 
 
 def _ax(ax):

@@ -295,6 +295,38 @@ with warnings.catch_warnings(record=True) as caught:
 print(caught[0].message if caught else "no warning")
 print(s32.status_name, "Zeno time", float(s32.zeno_time), "closed form", examples.zeno_time(1.0, 9.8, 0.8))"""),
     ],
+    "06_scenes": [
+        ("md", """# Scenes: contact systems from constraints
+
+A point of mass $m$ above a floor $a_G = z \\ge 0$ and a ramp $a_H = -x \\sin\\theta + z \\cos\\theta \\ge 0$ under
+gravity (A. M. Johnson, "Hybrid Dynamical Systems", practice problem 1). `hj.contact_system` builds its hybrid system
+from the constraints: modes are contact sets, and only the sets reached through achievable transitions are built."""),
+        ("code", SETUP),
+        ("code", """scene = examples.wedge_particle()
+args = {"m": jnp.asarray(1.0), "g": jnp.asarray(9.81), "theta": jnp.asarray(np.pi / 4)}
+system = hj.contact_system(scene, ["free"], args)
+system"""),
+        ("md", """For $\\theta < \\pi/2$ the corner G+H is never held: sliding into it along the floor, holding both would
+need the floor to pull ($P_G = -v \\cot\\theta < 0$), so the floor is released and the point runs up the ramp. The
+pruned transitions still lead to terminal `unbuilt: ...` modes, so an execution that reaches a set that was not
+built stops there with `BLOCKED`."""),
+        ("code", """rng = np.random.default_rng(0)
+x0 = np.stack([rng.uniform(-0.9, -0.1, 16), rng.uniform(0.1, 0.8, 16),
+               rng.uniform(0.0, 2.0, 16), rng.uniform(-1.0, 1.0, 16)], 1)
+ts = jnp.linspace(0.0, 1.5, 151)
+sols = hj.simulate_batch(system, x0, "free", 0.0, 1.5, args, saveat=ts, max_epochs=16)
+print({hj.STATUS_NAMES[c]: int(n) for c, n in zip(*np.unique(np.asarray(sols.status), return_counts=True))})
+forces = np.asarray(system.contact_forces(sols))   # (executions, saves, constraints)
+print(system.force_names, forces.shape)"""),
+        ("code", """fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
+for i in range(4):
+    a1.plot(sols.ys[i, :, 0], sols.ys[i, :, 1])
+a1.plot([-1, 0, 1], [0, 0, 1], "k", lw=2); a1.set_xlabel("x"); a1.set_ylabel("z"); a1.set_aspect("equal")
+a2.plot(ts, forces[0, :, 0], label="$\\lambda_G$"); a2.plot(ts, forces[0, :, 1], label="$\\lambda_H$")
+a2.axhline(9.81 * np.cos(np.pi / 4), color="gray", ls=":")
+a2.set_xlabel("t"); a2.set_ylabel("contact force"); a2.legend(); plt.show()"""),
+        ("md", """On the floor the force is $m g$; on the ramp it is $m g \\cos\\theta$ (the dotted line); in flight both are 0."""),
+    ],
 }
 
 NOTEBOOKS["03_zeno_and_blocking"] += [
@@ -386,8 +418,7 @@ a2.set(xlabel="iteration", ylabel="bounces before t1"); a2.legend(); plt.show()"
 The ball with a vertical thrust $u$ on 20 intervals over $[0, 1]$ tracks the passive ball (impact at
 0.4518) from $u = 2.5$ (impact at 0.5234, one interval later). The backward pass crosses the impact with its
 saltation matrix; the reference extension compares states of the same epoch while the impact moves back."""),
-    ("code", """from hybridjax._ilqr import _initial
-thrust_ball = hj.HybridSystem(
+    ("code", """thrust_ball = hj.HybridSystem(
     [hj.Mode("flight", lambda t, x, a: jnp.stack([x[1], -a["g"] + a["u"][0]]), dim=2)],
     [hj.Transition("flight", "flight", guard=lambda t, x, a: x[0],
                    reset=lambda t, x, a: x.at[1].multiply(-a["e"]), name="bounce")])
@@ -395,17 +426,17 @@ grid = jnp.linspace(0, 1, 21)
 cargs = lambda u: {"g": 9.8, "e": 0.8, "u": u}
 Q = jnp.diag(jnp.array([10.0, 1.0]))
 x0 = jnp.array([1.0, 0.0])
-reference = _initial(hj.HybridLQRProblem(thrust_ball, cargs, x0, "flight", grid, jnp.zeros((21, 2)), Q, 1e-3, 10 * Q),
-                     jnp.zeros((20, 1))).xs
+passive = lambda u: hj.simulate(thrust_ball, x0, "flight", 0.0, 1.0, cargs(jnp.full(1, u)), saveat=grid).ys
+reference = passive(0.0)
 lqr = hj.HybridLQRProblem(thrust_ball, cargs, x0, "flight", grid, reference, Q, 1e-3, 10 * Q)
 u0 = jnp.full((20, 1), 2.5)
 res = hj.hybrid_ilqr(lqr, u0, iterations=8)
-first = _initial(lqr, u0)
+first = passive(2.5)  # the initial guess: u = 2.5 on every interval
 print("costs", np.asarray(res.costs))
 print("impact interval per iterate", [int(np.flatnonzero(np.isfinite(np.asarray(t[:, 0])))[0]) for t in res.event_times])
 fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 3.5))
 a1.semilogy(np.asarray(res.costs) + 1e-32, "o-"); a1.set(xlabel="iteration", ylabel="cost")
-a2.plot(grid, reference[:, 0], "k-", label="reference"); a2.plot(grid, first.xs[:, 0], "--", label="initial u = 2.5")
+a2.plot(grid, reference[:, 0], "k-", label="reference"); a2.plot(grid, first[:, 0], "--", label="initial u = 2.5")
 a2.plot(grid, res.states[:, 0], ".", label="iLQR"); a2.set(xlabel="t", ylabel="h"); a2.legend(); plt.show()"""),
 ]
 

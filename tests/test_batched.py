@@ -18,15 +18,11 @@ from jax import lax
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._batched import (
-    PER_COMPONENT_MAX_DIM,
-    ChebyshevDense,
-    chebyshev_weights,
-    first_lanes,
-    running_count,
-)
-from hybridjax._kernels import Kernels
-from hybridjax._simulate_batch import carries_derivatives
+from hybridjax._definition.kernels import Kernels
+from hybridjax._engines.batched import PER_COMPONENT_MAX_DIM
+from hybridjax._engines.dense_weights import ChebyshevDense, chebyshev_weights
+from hybridjax._engines.xla_cpu import first_lanes, running_count
+from hybridjax._solve.simulate_batch import carries_derivatives
 
 from helpers import BALL, BALL_ARGS, CEILING, THERMO, TIGHT, WALL, central_difference, line_system
 

@@ -14,7 +14,7 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
-from hybridjax._fast_rk import (
+from hybridjax._step.runge_kutta import (
     FastIController,
     UnrolledERK,
     fold,
@@ -181,7 +181,7 @@ def test_engine_choice_errors_and_fallback():
                     stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.4, icoeff=0.3))
     with pytest.raises(ValueError, match="engine must be"):
         hj.simulate(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
-    from hybridjax._simulate import _choose_engine
+    from hybridjax._solve.simulate import _choose_engine
 
     # "auto" keeps diffrax's step where the fast one does not apply, and takes it where it does.
     kv, pid = diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-6, atol=1e-6)

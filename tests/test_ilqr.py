@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import hybridjax as hj
-from hybridjax._ilqr import _initial, linearise
+from hybridjax._optimise.ilqr import _initial, linearise
 
 # ----------------------------------------------------------------------------- ball with thrust
 

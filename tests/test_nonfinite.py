@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import hybridjax as hj
-from hybridjax._rules import nonfinite_step, step_collapsed
+from hybridjax._rules.step import nonfinite_step, step_collapsed
 
 from helpers import TIGHT
 

@@ -15,7 +15,9 @@ import pytest
 
 from hybridjax import _rules as R
 from hybridjax import examples
-from hybridjax._fast_rk import (
+from hybridjax._core.status import Status
+from hybridjax._definition.kernels import GuardJets, Kernels
+from hybridjax._step.runge_kutta import (
     PIDState,
     UnrolledERK,
     explicit_rk_step,
@@ -23,8 +25,6 @@ from hybridjax._fast_rk import (
     rk_error_estimate,
     scaled_error,
 )
-from hybridjax._kernels import GuardJets, Kernels
-from hybridjax._status import Status
 
 EPS = float(np.finfo(np.float64).eps)
 BALL_KERN = Kernels(examples.bouncing_ball(), {"g": 9.8, "e": 0.8}, jnp.float64)

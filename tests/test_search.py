@@ -95,6 +95,20 @@ def test_samples_where_a_constraint_is_not_finite_are_skipped():
     assert float(w.x[0]) >= 0.25 - 1e-12
 
 
+def test_refinement_from_points_where_every_derivative_is_not_finite_ends():
+    # sqrt(x0) = 1 and x0 + x1 = 3 (the point (1, 2)), refined from starts where sqrt is NaN
+    # (x0 < 0) or its derivative infinite (x0 = 0): every step stays finite (a NaN in the
+    # least-squares SVD can stall it), and the search ends at the point.
+    xs = jnp.array([[-1.0, 0.0], [0.0, 0.0], [-2.0, 1.0]])
+
+    def eq(t, x, a):
+        return jnp.array([jnp.sqrt(x[0]) - 1.0, x[0] + x[1] - 3.0])
+
+    w = jax.jit(lambda xs: hj.find_point(eq, None, jnp.zeros(3), xs, num_starts=3))(xs)
+    assert bool(w.found)
+    np.testing.assert_allclose(np.asarray(w.x), [1.0, 2.0], atol=1e-6)
+
+
 def test_bad_input_is_named():
     with pytest.raises(ValueError, match="both are None"):
         hj.find_point(None, None, jnp.zeros(2), jnp.zeros((2, 1)))

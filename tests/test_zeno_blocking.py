@@ -210,7 +210,7 @@ def test_chunked_arrays_and_sampler_paths_agree():
 
 
 def test_progress_estimate_counts_run_time_only():
-    from hybridjax._montecarlo import _Progress, _progress_line
+    from hybridjax._analysis.montecarlo import _Progress, _progress_line
 
     # 200 of 1000 executions ran in 0.8 s after the compile: 800 more at 4 ms each is 3.2 s.
     line = _progress_line(200, 1000, 0.8)

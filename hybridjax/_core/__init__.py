@@ -1,0 +1,1 @@
+"""Foundation: the `Status` enumeration and which JAX transformations a call is made under."""

@@ -1,0 +1,135 @@
+"""The batched engine's storage: the lanes' state, the finished executions' values, the event record,
+and gathering and scattering of lanes."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._core.status import Status
+
+
+class Lanes(eqx.Module):
+    """The running state of N executions, lanes last (see `LoopState` for the fields)."""
+
+    t: jax.Array  # (N,)
+    y: jax.Array  # (n, N)
+    mode: jax.Array
+    h: jax.Array
+    f0: jax.Array  # (n, N): F at (t, y), the first stage of the next step
+    at_start: jax.Array
+    done: jax.Array
+    status: jax.Array  # (N,) int32: `Status` codes
+    g_prev_slots: jax.Array  # (S, N): `LoopState.g_prev`, by slot (`Kernels.to_slots`)
+    num_events: jax.Array
+    zero_run: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array  # (n, N)
+    recent_times: jax.Array  # (R, N)
+    recent_states: jax.Array  # (3, n, N)
+    inv_error: jax.Array  # (N,) the step-size rule's history (`PIDState`; unused by an I controller)
+    prev_inv_error: jax.Array
+    at_dtmin: jax.Array
+    save_ptr: jax.Array  # (N,): the next save time, in sorted order, not yet written
+    t1: jax.Array  # (N,): the end time of each lane's execution
+    exec_id: jax.Array  # (N,) int32: the execution each lane runs (num_executions: none)
+    next_exec: jax.Array  # () int32: the first execution not yet given to a lane
+
+
+class Finals(eqx.Module):
+    """The final values of every execution, lanes last (`Lanes`' fields of the same name),
+    written when its lane finishes: with fewer lanes than executions, a lane runs several."""
+
+    t: jax.Array
+    y: jax.Array
+    mode: jax.Array
+    status: jax.Array
+    num_events: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array
+
+    @classmethod
+    def of(cls, st: "Lanes") -> "Finals":
+        return cls(**{f: getattr(st, f) for f in cls.__dataclass_fields__})
+
+
+class LaneRecord(eqx.Module):
+    """The events of the executions, in the `Solution`'s own arrays and dtypes (executions
+    first), written in place by a scatter per array in iterations with events: the loop's
+    output is the record itself, not a copy."""
+
+    # (N + 1, E): row N takes the writes of events not kept (`BatchedLoop.jump`); E >= 1
+    event_times: jax.Array
+    transitions: jax.Array  # int32
+    epoch_modes: jax.Array  # (N + 1, E + 1) int32, column 0 the initial mode
+    simultaneous: jax.Array  # bool
+    grazing: jax.Array  # bool
+    inside_guard: jax.Array  # bool
+    states_before: jax.Array  # (N + 1, E, n)
+    states_after: jax.Array  # (N + 1, E, n)
+    ys: jax.Array  # (N, S, n) saved states
+    saved_modes: jax.Array  # (N, S)
+    finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
+
+    def buffers(self) -> list:
+        """The event and final-value arrays, selected by attribute as `eqxi.while_loop`'s
+        `buffers` wants them. (Not the saved states: written from a nested loop inside a
+        `lax.cond`, as buffers their reverse-mode gradient came out NaN.)"""
+        skip = ("finals", "ys", "saved_modes")
+        events = [getattr(self, f) for f in self.__dataclass_fields__ if f not in skip]
+        finals = self.finals
+        if not isinstance(finals, Finals):  # None (tree_at sees it as a leaf)
+            return events
+        return events + [getattr(finals, f) for f in Finals.__dataclass_fields__]
+
+    def fields(self, num_exec: int, max_epochs: int) -> dict:
+        """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
+        column), where writes that are not kept land (see `BatchedLoop.jump`)."""
+        out = {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
+        for f in ("event_times", "transitions", "simultaneous", "grazing", "inside_guard", "states_before",
+                  "states_after"):
+            out[f] = out[f][:num_exec, :max_epochs]
+        out["epoch_modes"] = out["epoch_modes"][:num_exec, :max_epochs + 1]
+        return out
+
+
+def as_status(codes) -> Status:
+    """A `Status` item holding the integer codes `codes` (one per lane)."""
+    return eqx.tree_at(lambda s: s._value, Status.T1_REACHED, jnp.asarray(codes, jnp.int32))
+
+
+def default_block(lanes: int) -> int:
+    """The default block size: every lane up to 256 of them, else max(64, lanes // 32)."""
+    return lanes if lanes <= 256 else max(64, lanes // 32)
+
+
+def _take_lanes(a, idx):
+    """Lanes `idx` of a lanes-last array (an index past the last lane reads the last lane)."""
+    return jnp.take(a, idx, axis=-1, mode="clip")
+
+
+# The per-lane fields of `Lanes` (all but the queue's head, `next_exec`).
+_LANE_FIELDS = tuple(f for f in Lanes.__dataclass_fields__ if f != "next_exec")
+
+
+def _gather_lanes(st: Lanes, idx) -> Lanes:
+    """The lanes `idx` of `st` as a `Lanes` of their own (a block); `idx` None: `st` itself.
+    (Fields the block's update does not read are gathers without users: XLA removes them.)"""
+    if idx is None:
+        return st
+    return eqx.tree_at(lambda s: [getattr(s, f) for f in _LANE_FIELDS], st,
+                       [_take_lanes(getattr(st, f), idx) for f in _LANE_FIELDS])
+
+
+def _scatter_lanes(st: Lanes, gathered: Lanes, block: Lanes, idx) -> Lanes:
+    """`st` with lanes `idx` replaced by `block`, the update of `gathered` (`_gather_lanes`'
+    output): one scatter per field the update changed (by identity; indices >= N, a block's
+    spare slots, are dropped)."""
+    if idx is None:
+        return block
+    changed = [f for f in _LANE_FIELDS if getattr(block, f) is not getattr(gathered, f)]
+    return eqx.tree_at(lambda s: [getattr(s, f) for f in changed], st,
+                       [getattr(st, f).at[..., idx].set(getattr(block, f), mode="drop") for f in changed])

@@ -1,0 +1,557 @@
+"""The execution loop: one bounded/checkpointed while loop whose iterations are solver steps.
+
+Each iteration of one execution does, in order:
+
+1. `start_stage` (only at the start of an epoch): decide whether a guard fires at once
+   (a zero-length epoch, `_rules.start.epoch_start`); if not, choose the epoch's first step.
+2. `step_stage`: one step of the diffrax solver with diffrax's step-size controller; on an
+   accepted step, `detect` crossings on the dense interpolant, `locate` the first one,
+   `save` the requested times in the step, and `jump` (record the event and apply the reset).
+
+An epoch is therefore one diffrax integration (diffrax's own `solver.step`,
+`stepsize_controller.adapt_step_size` and dense interpolation) ended by an event. The loop is
+equinox's internal while loop, `checkpointed` for reverse mode (as diffrax's
+`RecursiveCheckpointAdjoint`), `lax` for forward mode, `bounded` for both: a bare
+`lax.while_loop` cannot be reverse-differentiated.
+
+Cost under `vmap` is the cost of each iteration's operations over the whole batch, so the
+loop keeps them few: guards are sampled on the dense output at constant fractions of the
+step (its polynomials fold at compile time), the root and minimum searches run under a
+`lax.cond` taken only when some execution needs them, and events are recorded as "pending"
+in the small loop state and written into the max_epochs-long `EventRecord` once per
+iteration, so that the many per-execution selects of an iteration never copy the record.
+
+Event times are differentiated by the implicit function theorem with the true vector field,
+dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder's
+iterations, with the event held at a fixed elapsed time within its step (`event_point`), so
+that a shift of an epoch's start time moves its event time one-for-one; the next epoch starts
+at that traced time, so AD through the loop composes flows and resets into the saltation
+matrix.
+"""
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax import lax
+
+from .._core.status import Status
+from .._definition.kernels import Kernels, mask_inputs
+from .._rules.detect import dip_candidates, dip_filter, first_crossings
+from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
+from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.records import Detection
+from .._rules.save import saved_in_step
+from .._rules.start import carries_step, epoch_start
+from .._rules.status import stop_first
+from .._rules.step import nonfinite_step, step_stops
+from .._rules.tolerances import event_time_tol, step_end
+from .._rules.zeno import ZenoOptions, detect_zeno
+from .._step.runge_kutta import UnrolledERK
+
+sg = lax.stop_gradient
+# Save rows interpolated as a window when every execution's rows in a step lie within this many
+# consecutive indices (all rows otherwise).
+SAVE_WINDOW = 16
+
+
+class LoopState(eqx.Module):
+    """Everything one execution carries from one iteration to the next."""
+
+    t: jax.Array
+    y: jax.Array
+    mode: jax.Array
+    h: jax.Array  # the next step's size (0 before the first)
+    solver_state: Any
+    controller_state: Any
+    made_jump: jax.Array
+    at_start: jax.Array
+    g_prev: jax.Array  # (K + W,) the watched values at the last sample (the epoch's start values)
+    num_events: jax.Array
+    zero_run: jax.Array
+    num_steps: jax.Array
+    num_rejected: jax.Array
+    done: jax.Array
+    status: Status
+    # Events recorded in this iteration (at most two: a jump and a Zeno completion), written
+    # into the `EventRecord` once at the end of the iteration. Keeping the max_epochs-long
+    # record out of the state keeps it out of the many per-execution selects of an iteration.
+    pend_count: jax.Array
+    pend_at: jax.Array
+    pend_time: jax.Array
+    pend_transition: jax.Array
+    pend_before: jax.Array
+    pend_after: jax.Array
+    pend_target: jax.Array
+    pend_simultaneous: jax.Array
+    pend_grazing: jax.Array
+    pend_inside: jax.Array
+    zeno_time: jax.Array
+    zeno_state: jax.Array
+    recent_times: jax.Array  # the last zeno_window + 2 event times, oldest first (Zeno test)
+    recent_states: jax.Array  # the last 3 post-event states
+
+
+class EventRecord(eqx.Module):
+    """The events of one execution, padded to max_epochs (inf / -1 / False), and its saved
+    states (inf / -1 where not reached). Kept out of `LoopState`: both are long, and the
+    per-execution selects of an iteration would otherwise copy them several times."""
+
+    event_times: jax.Array
+    transitions: jax.Array
+    states_before: jax.Array
+    states_after: jax.Array
+    epoch_modes: jax.Array
+    simultaneous: jax.Array
+    grazing: jax.Array
+    inside_guard: jax.Array
+    ys: jax.Array
+    saved_modes: jax.Array
+
+
+def _put_rows(arr, rows, value):
+    """`arr` with the rows where `rows` (bool, arr.shape[0]) is True set to `value`: a masked
+    write, no scatter (under vmap a scatter with one index per execution is a serial loop on
+    CPU)."""
+    m = rows.reshape(rows.shape + (1,) * (arr.ndim - 1))
+    return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
+
+
+def _select(pred, a, b):
+    """Per-execution `a if pred else b` on whole pytrees (Status items included)."""
+    return jtu.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+
+
+def _stop(st: LoopState, *rules) -> LoopState:
+    """`st` stopped by the first of the rules `(pred, Status)` that holds (`stop_first`)."""
+    done, code = stop_first(st.done, st.status._value, *rules)
+    return eqx.tree_at(lambda s: (s.done, s.status._value), st, (done, code))
+
+
+class Loop:
+    """The loop for one system and one set of options; `run(t0, x0, mode0, args)` runs it."""
+
+    def __init__(
+        self,
+        system,
+        *,
+        t1,
+        args,
+        solver,
+        controller,
+        dt0,
+        save_ts,
+        max_epochs: int,
+        max_steps: int,
+        interior_points: int,
+        event_tol,
+        max_zero_epochs: int,
+        zeno: ZenoOptions | None,
+        loop_kind: str,
+        checkpoints,
+        dtype,
+    ):
+        self.kern = Kernels(system, args, dtype)
+        self.zeno = zeno
+        self.recent = (zeno.window + 2) if zeno is not None else 2
+        self.system = system
+        self.t1 = t1
+        self.args = args
+        self.solver = solver
+        self.controller = controller
+        self.dt0 = dt0
+        # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
+        # with the controller's last proposal (`first_step`).
+        self.carry_step = carries_step(dt0, isinstance(solver, UnrolledERK | diffrax.AbstractERK))
+        self.save_ts = save_ts
+        self.max_epochs = max_epochs
+        self.max_steps = max_steps
+        self.interior_points = interior_points
+        self.max_zero_epochs = max_zero_epochs
+        self.loop_kind = loop_kind
+        self.checkpoints = checkpoints
+        self.dtype = dtype
+        self.eps = jnp.finfo(dtype).eps
+        self.event_tol = event_tol
+        self.terms = diffrax.ODETerm(lambda t, y, a: self.kern.flow(a[0], t, y, a[1]))
+        rtol = getattr(controller, "rtol", None)
+        atol = getattr(controller, "atol", None)
+        # Band of "zero" for guards at an epoch's start; solvers without tolerances
+        # (constant steps) get sqrt(eps), the accuracy a double-precision step can promise.
+        self.rtol = jnp.sqrt(self.eps) if rtol is None else rtol
+        self.atol = jnp.sqrt(self.eps) if atol is None else atol
+
+    # ----------------------------------------------------------------- helpers
+    def error_order(self):
+        return self.solver.error_order(self.terms)
+
+    # ----------------------------------------------------------------- init
+    def init(self, t0, y0, mode0) -> LoopState:
+        n = self.kern.n
+        dtype = self.dtype
+        args_ext = (mode0, self.args)
+        solver_state = self.solver.init(self.terms, t0, self.t1, y0, args_ext)
+        _, controller_state = self.controller.init(
+            self.terms, t0, self.t1, y0, self.dt0, args_ext, self.solver.func, self.error_order()
+        )
+        return LoopState(
+            t=t0,
+            y=y0,
+            mode=mode0,
+            h=jnp.zeros((), dtype),
+            solver_state=solver_state,
+            controller_state=controller_state,
+            made_jump=jnp.array(True),
+            at_start=jnp.array(True),
+            g_prev=jnp.zeros((self.kern.num_watch,), dtype),
+            num_events=jnp.array(0, jnp.int32),
+            zero_run=jnp.array(0, jnp.int32),
+            num_steps=jnp.array(0, jnp.int32),
+            num_rejected=jnp.array(0, jnp.int32),
+            done=jnp.array(False),
+            status=Status.T1_REACHED,
+            pend_count=jnp.array(0, jnp.int32),
+            pend_at=jnp.zeros((2,), jnp.int32),
+            pend_time=jnp.zeros((2,), dtype),
+            pend_transition=jnp.zeros((2,), jnp.int32),
+            pend_before=jnp.zeros((2, n), dtype),
+            pend_after=jnp.zeros((2, n), dtype),
+            pend_target=jnp.zeros((2,), jnp.int32),
+            pend_simultaneous=jnp.zeros((2,), bool),
+            pend_grazing=jnp.zeros((2,), bool),
+            pend_inside=jnp.zeros((2,), bool),
+            zeno_time=jnp.array(jnp.inf, dtype),
+            zeno_state=jnp.full((n,), jnp.inf, dtype),
+            recent_times=jnp.full((self.recent,), jnp.inf, dtype),
+            recent_states=jnp.full((3, n), jnp.inf, dtype),
+        )
+
+    # ----------------------------------------------------------------- jump
+    def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing,
+                inside=False):
+        """Record an event (as pending: `flush` writes it into the EventRecord)."""
+        slot = jnp.arange(2) == st.pend_count
+
+        def put(arr, value):
+            return _put_rows(arr, slot, value)
+
+        return eqx.tree_at(
+            lambda s: (
+                s.pend_at, s.pend_time, s.pend_transition, s.pend_before, s.pend_after, s.pend_target,
+                s.pend_simultaneous, s.pend_grazing, s.pend_inside, s.pend_count, s.num_events,
+                s.recent_times, s.recent_states,
+            ),
+            st,
+            (
+                put(st.pend_at, st.num_events),
+                put(st.pend_time, t_ev),
+                put(st.pend_transition, index),
+                put(st.pend_before, y_before),
+                put(st.pend_after, y_after),
+                put(st.pend_target, target),
+                put(st.pend_simultaneous, simultaneous),
+                put(st.pend_grazing, grazing),
+                put(st.pend_inside, inside),
+                st.pend_count + 1,
+                st.num_events + 1,
+                push_recent(st.recent_times, jnp.asarray(t_ev)),
+                push_recent(st.recent_states, y_after),
+            ),
+        )
+
+    def init_record(self, t0, y0, mode0) -> EventRecord:
+        E, n, dtype = self.max_epochs, self.kern.n, self.dtype
+        at_t0 = self.save_ts <= t0
+        return EventRecord(
+            ys=jnp.where(at_t0[:, None], y0[None, :], jnp.inf).astype(dtype),
+            saved_modes=jnp.where(at_t0, mode0, -1).astype(jnp.int32),
+            event_times=jnp.full((E,), jnp.inf, dtype),
+            transitions=jnp.full((E,), -1, jnp.int32),
+            states_before=jnp.full((E, n), jnp.inf, dtype),
+            states_after=jnp.full((E, n), jnp.inf, dtype),
+            epoch_modes=jnp.full((E + 1,), -1, jnp.int32).at[0].set(mode0),
+            simultaneous=jnp.zeros((E,), bool),
+            grazing=jnp.zeros((E,), bool),
+            inside_guard=jnp.zeros((E,), bool),
+        )
+
+    def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
+        """Write the pending events of this iteration into the record (`_put_rows`)."""
+        E = self.max_epochs
+        for slot in range(2):
+            i = jnp.where(slot < st.pend_count, st.pend_at[slot], E + 1)
+            row, row_m = jnp.arange(E) == i, jnp.arange(E + 1) == i + 1
+
+            def put(arr, value, mask=row):
+                return _put_rows(arr, mask, value)
+
+            rec = eqx.tree_at(
+                lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
+                           r.epoch_modes, r.simultaneous, r.grazing, r.inside_guard),
+                rec,
+                (
+                    put(rec.event_times, st.pend_time[slot]),
+                    put(rec.transitions, st.pend_transition[slot]),
+                    put(rec.states_before, st.pend_before[slot]),
+                    put(rec.states_after, st.pend_after[slot]),
+                    put(rec.epoch_modes, st.pend_target[slot], row_m),
+                    put(rec.simultaneous, st.pend_simultaneous[slot]),
+                    put(rec.grazing, st.pend_grazing[slot]),
+                    put(rec.inside_guard, st.pend_inside[slot]),
+                ),
+            )
+        return rec
+
+    def _begin_epoch(self, st: LoopState, t, y, mode, zero_run) -> LoopState:
+        """Move to the start of a new epoch at (t, y) in `mode` (its start test comes next)."""
+        return eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.made_jump, s.zero_run),
+            st,
+            (t, y, mode, jnp.array(True), jnp.array(True), zero_run),
+        )
+
+    def jump(
+        self, st: LoopState, k, t_ev, y_before, simultaneous, zero_length, args, grazing=False,
+        inside=False,
+    ) -> LoopState:
+        """Record transition k at t_ev and apply its reset; then stop on too many epochs,
+        non-finite values, chattering, or Zeno (or complete the Zeno execution)."""
+        y_after = self.kern.reset(k, t_ev, y_before, args)
+        out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
+                           self.max_zero_epochs)
+        target = self.kern.targets[k]
+        recorded = self._record(st, k, t_ev, y_before, y_after, target, simultaneous, grazing, inside)
+        jumped = self._begin_epoch(recorded, t_ev, y_after, target, out.zero_run)
+        # A non-finite reset keeps the event (its after-state shows the culprit) but ends the
+        # execution at the pre-event state; an event the record has no room for is not kept.
+        held = eqx.tree_at(lambda s: (s.t, s.y), _select(out.recorded, recorded, st), (t_ev, y_before))
+        new = _stop(_select(out.applied, jumped, held), *out.stops)
+        if self.zeno is not None:
+            new = _select(out.applied, self.zeno_stage(new, args), new)
+        return new
+
+    def zeno_stage(self, st: LoopState, args) -> LoopState:
+        """After an event: if event times accumulate before t1, stop with ZENO or complete."""
+        is_zeno, t_inf, x_inf = detect_zeno(st.recent_times, st.recent_states, self.t1, self.zeno)
+        is_zeno = is_zeno & ~st.done
+        st = eqx.tree_at(
+            lambda s: (s.zeno_time, s.zeno_state),
+            st,
+            (jnp.where(is_zeno, t_inf, st.zeno_time), jnp.where(is_zeno, x_inf, st.zeno_state)),
+        )
+        stopped = _stop(st, (is_zeno, Status.ZENO))
+        if not self.system.completions:
+            return stopped
+        comp = zeno_completion(self.kern, st.mode, is_zeno, t_inf, x_inf, args)
+        st_c = mask_inputs(comp.completes, st)
+        done = self._record(st_c, comp.index, comp.t, comp.x, comp.y_after, comp.target, jnp.array(False),
+                            jnp.array(False))
+        done = self._begin_epoch(done, comp.t, comp.y_after, comp.target, jnp.array(0, jnp.int32))
+        done = _stop(done, (st.num_events >= self.max_epochs, Status.MAX_EPOCHS))
+        return _select(comp.completes, done, stopped)
+
+    # ----------------------------------------------------------------- start of an epoch
+    def start_stage(self, st: LoopState) -> LoopState:
+        active = st.at_start & ~st.done
+
+        def run(st):
+            t, y, mode = sg(st.t), sg(st.y), st.mode
+            t_init, ctrl_state = self.controller.init(
+                self.terms, t, self.t1, y, self.dt0, (mode, self.args), self.solver.func, self.error_order()
+            )
+            start = epoch_start(self.kern, mode, t, y, sg(self.args), st.h, t_init - t, carry=self.carry_step,
+                                rtol=self.rtol, atol=self.atol, event_tol=self.event_tol, eps=self.eps)
+            K = self.kern.num_transitions
+            # A domain component (index >= K) "firing" with no guard before it: the state is
+            # outside its domain (a reset outside the target domain, or x0) or leaving it.
+            blocked = _stop(st, (jnp.array(True), Status.BLOCKED))
+            if K:
+                # Inputs of a branch not taken get no gradient (NaN-safe "double where").
+                st_f, args_f = mask_inputs(active & start.fire & ~blocks(start.k, K), (st, self.args))
+                fired = self.jump(st_f, jnp.minimum(start.k, K - 1), st_f.t, st_f.y, start.simultaneous,
+                                  jnp.array(True), args_f, inside=start.inside)
+                fired = _select(blocks(start.k, K), blocked, fired)
+            else:
+                fired = blocked
+            go = eqx.tree_at(
+                lambda s: (s.at_start, s.g_prev, s.h, s.controller_state, s.made_jump),
+                st,
+                (jnp.array(False), start.g_start, start.h.astype(self.dtype), ctrl_state, jnp.array(True)),
+            )
+            go = _stop(go, (st.t >= self.t1, Status.T1_REACHED))
+            new = _select(start.fire, fired, go)
+            new = _stop(new, (~start.finite, Status.NONFINITE))
+            return _select(active, new, st)
+
+        return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
+
+    # ----------------------------------------------------------------- one step
+    def step_stage(self, st: LoopState):
+        """One step; returns the new state and `save`, which writes this step's saved states
+        into an `EventRecord`."""
+        active = ~st.done & ~st.at_start
+        # Executions that do not step here still compute a step (vmap); their inputs get no
+        # gradient, so a NaN in their discarded results cannot reach one (double where).
+        st_all = st
+        st, args = mask_inputs(active, (st, self.args))
+        kern, mode = self.kern, st.mode
+        args_ext = (mode, args)
+        t = st.t
+        t_next = step_end(t, st.h, self.t1)
+        y1, y_err, dense_info, solver_state, _ = self.solver.step(
+            self.terms, t, t_next, st.y, args_ext, st.solver_state, st.made_jump
+        )
+        keep, nt0, nt1, made_jump, ctrl_state, _ = self.controller.adapt_step_size(
+            t, t_next, st.y, y1, args_ext, y_err, self.error_order(), st.controller_state
+        )
+        finite_y1 = jnp.all(jnp.isfinite(y1))
+
+        # detect: guards on the interpolant at interior points and at the end of the step.
+        interp = self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+        interp_sg = self.solver.interpolation_cls(t0=sg(t), t1=sg(t_next), **sg(dense_info))
+        args_sg = sg(args)
+        m = self.interior_points
+        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
+        s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
+        s_ext = jnp.concatenate([sg(t)[None], s])
+        one = jnp.ones_like(s_ext[0])
+        # The dense output on the unit interval, at constant fractions theta: its polynomials
+        # in theta fold to constants at compile time, leaving one weighted sum of the stages
+        # per sample (the same values as on [t, t_next]: diffrax's stages are increments).
+        unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
+        h_safe = jnp.maximum(sg(t_next - t), jnp.finfo(self.dtype).tiny)
+        samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,))
+                   for th in np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])]
+        ys_e = jnp.stack([y for y, _ in samples]).at[0].set(sg(st.y)).at[-1].set(sg(y1))
+        yd_e = jnp.stack([yd for _, yd in samples]) / h_safe
+        # Watched values and their slopes along the step at the start, interior points, end.
+        G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
+            lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
+        G = G_e[1:]
+        # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`);
+        # the controller's NaN error and proposal are not used.
+        h = sg(t_next - t)
+        finite, h_new, stuck = nonfinite_step(finite_y1, jnp.all(jnp.isfinite(G)), nt1 - nt0, h, sg(t),
+                                              self.eps)
+        keep = keep & finite
+        h_new = sg(h_new).astype(self.dtype)
+        ctrl_state = _select(finite, ctrl_state, st.controller_state)
+        ok = keep & active
+        has, j = first_crossings(st.g_prev, G)
+        # A guard can dip below zero and come back between two samples (near-grazing): where
+        # the end tangents allow it, the minimum is searched for on the interpolant.
+        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e, s_ext)
+        has = has & ok
+        det = Detection(has, j, dip_filter(has, j, suspect & ok, i_d), i_d, x0_d)
+        tol = event_time_tol(self.event_tol, sg(t_next), h, self.eps)
+
+        def values_at(x):
+            return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
+
+        if kern.num_watch:
+            # locate: only when some execution in the batch has an event in this step.
+            br = event_brackets(values_at, det, s_ext, tol)
+            t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next))
+            any_event = jnp.any(br.has)
+        else:
+            t_star, k, simultaneous = sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
+            any_event = jnp.array(False)
+        ev_active = active & any_event
+        if kern.num_watch:
+            dense_e, args_e, st_e, t_next_e = mask_inputs(ev_active, (dense_info, args, st, t_next))
+            interp_e = self.solver.interpolation_cls(t0=st_e.t, t1=t_next_e, **dense_e)
+            t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp_e, args_e)
+
+        # save: requested times inside (t, t_end], t_end the event time or the step's end;
+        # applied to the record by `body` (see `EventRecord`).
+        def save(rec: EventRecord) -> EventRecord:
+            if not self.save_ts.shape[0]:
+                return rec
+            t_end = jnp.where(any_event, t_star, sg(t_next))
+            mask = keep & active & saved_in_step(self.save_ts, sg(t), t_end)
+
+            def put_all(ys):
+                vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
+                return _put_rows(ys, mask, vals)
+
+            S = self.save_ts.shape[0]
+            i0 = jnp.argmax(mask)  # the first save row in this step
+            span = jnp.where(jnp.any(mask), S - jnp.argmax(mask[::-1]) - i0, 0)
+
+            def put_few(ys):
+                # Every execution's save rows in this step lie in i0 .. i0 + SAVE_WINDOW - 1:
+                # evaluate the interpolant there (not at all S rows), then place row s from
+                # window slot s - i0 with one gather.
+                idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
+                tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
+                vals = jax.vmap(interp.evaluate)(tt)
+                slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
+                return _put_rows(ys, mask, vals[slot])
+
+            def put(ys):
+                few = eqxi.unvmap_max(span) <= SAVE_WINDOW
+                return lax.cond(few, put_few, put_all, ys)
+
+            # Most steps of most executions contain no save time: skip the interpolation then.
+            ys = lax.cond(eqxi.unvmap_any(mask), put, lambda ys: ys, rec.ys)
+            saved_modes = jnp.where(mask, mode, rec.saved_modes)
+            return eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, saved_modes))
+
+        counted = eqx.tree_at(
+            lambda s: (s.h, s.controller_state, s.num_steps, s.num_rejected),
+            st,
+            (h_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32)),
+        )
+        accepted = eqx.tree_at(
+            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
+            counted,
+            (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
+        )
+        accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
+        K = kern.num_transitions
+        if kern.num_watch:
+            # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
+            blocked = eqx.tree_at(lambda s: (s.t, s.y), counted, (t_ev, y_before))
+            evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
+        else:
+            evented = accepted
+        if K:
+            counted_e = mask_inputs(ev_active & ~blocks(k, K), counted)
+            jumped = self.jump(
+                counted_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
+                args_e, grazing,
+            )
+            evented = _select(blocks(k, K), evented, jumped)
+        progressed = _select(keep, _select(any_event, evented, accepted), counted)
+        # A non-finite step that cannot be shrunk any further stops the run at the step's
+        # start, where everything was finite.
+        new = _stop(_select(stuck, counted, progressed),
+                    *step_stops(stuck, finite, h_new, sg(t), self.eps, progressed.num_steps, self.max_steps))
+        return _select(active, new, st_all), save
+
+    # ----------------------------------------------------------------- the loop
+    def body(self, carry):
+        st, rec = carry
+        new, save = self.step_stage(self.start_stage(st))
+        new = _select(st.done, st, new)
+        rec = self.flush(save(rec), new)
+        return eqx.tree_at(lambda s: s.pend_count, new, jnp.zeros_like(new.pend_count)), rec
+
+    def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
+        carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
+        st, rec = eqxi.while_loop(
+            lambda c: ~c[0].done,
+            self.body,
+            carry,
+            max_steps=self.max_steps + self.max_epochs + 2,
+            kind=self.loop_kind,
+            checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
+        )
+        # The loop's own bound can only be met by executions that are still running.
+        return _stop(st, (jnp.array(True), Status.MAX_STEPS)), rec
+

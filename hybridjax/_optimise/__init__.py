@@ -1,0 +1,1 @@
+"""Trajectory optimisation: shooting, multiple shooting and hybrid iLQR."""

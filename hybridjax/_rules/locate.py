@@ -1,0 +1,252 @@
+"""Location of an event: the root and minimum searches on the interpolant, the brackets, the
+simultaneity rule, the first event and the implicit-function event point."""
+
+from collections.abc import Callable
+
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from .._definition.kernels import Kernels
+from .._step.runge_kutta import unrolled_sum
+from .records import Brackets, Detection, EventChoice
+
+sg = lax.stop_gradient
+
+
+# ---------------------------------------------------------------------------- location
+def locate_root(f, a, b, tol, max_iter: int = 64):
+    """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
+
+    Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
+    falling back to bisection when a Newton step leaves the bracket or is not at most half
+    the step before last (Numerical Recipes' rtsafe). Each iterate x_k is followed by a probe
+    at x_k + delta_k if f(x_k) > 0, else at x_k - delta_k (towards the root), delta_k =
+    2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]: once Newton converges
+    quadratically the root lies well within |x_k - x_{k-1}| of x_k, so x_k and the probe
+    straddle it and the bracket closes at once (a fixed tiny delta would wait for Newton to
+    land within rounding noise of the root, and bisect ~40 times instead). A final
+    Newton step from the right end then puts it a few ulps past the root (g <= 0 kept).
+    No gradients: the caller differentiates the event time by the implicit function theorem.
+    """
+    a, b, tol = lax.stop_gradient((a, b, tol))
+    fa, fb = f(a), f(b)
+    denom = fa - fb
+    x0 = jnp.where(denom > 0, a + (b - a) * fa / jnp.where(denom > 0, denom, 1.0), 0.5 * (a + b))
+    x0 = jnp.clip(x0, a, b)
+
+    def cond(c):
+        a, b, *_, i = c
+        return (b - a > tol) & (i < max_iter)
+
+    def body(c):
+        a, b, x, dx, dx_old, i = c
+        fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
+        floor = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
+        delta = jnp.clip(2 * jnp.abs(dx), floor, jnp.maximum(0.5 * tol, floor))
+        # One probe, on the side of x where the root lies (a probe on the other side moves the
+        # bracket only if f changes sign twice within delta). The two points are written out,
+        # not stacked: elementwise code that XLA fuses into a few kernels per iteration (a stack
+        # and a reduction over it do not fuse under vmap).
+        probe = jnp.clip(jnp.where(fx > 0, x + delta, x - delta), a, b)
+        a_new, b_new = a, b
+        for p, fp in ((x, fx), (probe, f(probe))):
+            finite = jnp.isfinite(fp)
+            a_new = jnp.where(finite & (fp > 0), jnp.maximum(a_new, p), a_new)
+            b_new = jnp.where(finite & (fp <= 0), jnp.minimum(b_new, p), b_new)
+        step = fx / jnp.where(dfx != 0, dfx, 1.0)
+        xn = x - step
+        # As in rtsafe: take Newton's step if it stays in the bracket and is at most half the
+        # step before last (converging); bisect otherwise.
+        ok = (dfx != 0) & jnp.isfinite(xn) & (xn > a_new) & (xn < b_new)
+        ok = ok & (2 * jnp.abs(step) <= jnp.abs(dx_old))
+        mid = 0.5 * (a_new + b_new)
+        xn = jnp.where(ok, xn, mid)
+        return a_new, b_new, xn, jnp.abs(xn - x), dx, i + 1
+
+    a, b, *_ = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
+    # Polish: one Newton step from b (within tol of the root, so it lands within rounding of
+    # it), then the first of three points 4, 16, 64 ulp to its right where f <= 0, else b. The
+    # few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its
+    # arithmetic rounds differently by an ulp or so).
+    fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
+    xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
+    ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
+    out = b
+    for m in (64.0, 16.0, 4.0):  # the last one written wins: the first good one
+        cand = xp + m * ulp
+        good = (f(cand) <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
+        out = jnp.where(good, cand, out)
+    return out
+
+
+def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
+    """The minimum of f on [a, b] (f' < 0 at a, > 0 at b), or the first point found with f < 0.
+
+    Newton's method on f' (f' and f'' by nested forward-mode AD), kept inside a shrinking
+    bracket [a, b] with f'(a) < 0 < f'(b), bisecting when a Newton step would leave it; stops
+    as soon as some f(x) < 0 (a crossing is proven), when the step or bracket is below
+    `tol`, or after `max_iter` iterations. Returns `(x, f(x))` at the lowest point seen.
+    """
+    a, b, x0, tol = lax.stop_gradient((a, b, x0, tol))
+    one = jnp.ones_like(x0)
+
+    def slope(x):
+        return jax.jvp(f, (x,), (one,))[1]
+
+    def cond(c):
+        a, b, _, step, f_best, _, i = c
+        return (f_best >= 0) & (b - a > tol) & (jnp.abs(step) > 0.5 * tol) & (i < max_iter)
+
+    def body(c):
+        a, b, x, _, f_best, x_best, i = c
+        fx = f(x)
+        d1, d2 = jax.jvp(slope, (x,), (one,))
+        better = fx < f_best
+        f_best, x_best = jnp.where(better, fx, f_best), jnp.where(better, x, x_best)
+        a = jnp.where(d1 < 0, x, a)
+        b = jnp.where(d1 > 0, x, b)
+        xn = x - d1 / jnp.where(d2 > 0, d2, 1.0)
+        ok = (d2 > 0) & jnp.isfinite(xn) & (xn > a) & (xn < b)
+        xn = jnp.where(ok, xn, 0.5 * (a + b))
+        step = jnp.where(d1 == 0, 0.0, xn - x)
+        return a, b, xn, step, f_best, x_best, i + 1
+
+    init = (
+        a,
+        b,
+        jnp.clip(x0, a, b),
+        jnp.asarray(jnp.inf, x0.dtype),
+        jnp.asarray(jnp.inf, x0.dtype),
+        x0,
+        jnp.array(0),
+    )
+    _, _, _, _, f_best, x_best, _ = lax.while_loop(cond, body, init)
+    return x_best, f_best
+
+
+def event_brackets(values_at: Callable, det: Detection, s_ext, tol) -> Brackets:
+    """Per watched function, a bracket of its first event in the step: of a dip where the
+    minimum search on a dip candidate (`locate_minimum`, run only when some execution has a
+    candidate) finds g < 0 (from the interval's start to that point), else of the first
+    crossing (samples j - 1 to j).
+
+    `values_at(x)`: the watched values on the step's dense output at time x; `det`: the step's
+    `Detection` (`suspect` already `dip_filter`ed); `s_ext` the sample times.
+    """
+    has, j, suspect, i_d, x0_d = det
+    s = s_ext[1:]
+
+    def refine(_):
+        def lowest(k, a_k, b_k, x_k):
+            return locate_minimum(lambda x: values_at(x)[k], a_k, b_k, x_k, tol)
+
+        return jax.vmap(lowest)(jnp.arange(has.shape[0]), s_ext[i_d], s_ext[i_d + 1], x0_d)
+
+    x_min, g_min = lax.cond(
+        eqxi.unvmap_any(jnp.any(suspect)), refine, lambda _: (x0_d, jnp.ones_like(x0_d)), None
+    )
+    dip = suspect & (g_min < 0)
+    a = jnp.where(dip, s_ext[i_d], jnp.where(has, s_ext[j], s[j]))
+    b = jnp.where(dip, x_min, s[j])
+    return Brackets(has | dip, a, b)
+
+
+def simultaneous_set(has, tk, t_min, tol, g_at, g_from):
+    """Which watched functions are reached at the same instant as the first event, at t_min.
+
+    Those with an event located within the event-time tolerance of t_min, tk <= t_min + tol,
+    and those that are <= 0 at t_min but were > 0 at the start of the earliest bracket (their
+    own bracket may be narrower than the samples): g(t_min) <= 0 < g(a_first). Which of them
+    fires: `resolve_simultaneous`.
+    """
+    any_event = jnp.any(has)
+    return has & (tk <= t_min + tol) | ((g_at <= 0) & (g_from > 0) & any_event)
+
+
+def resolve_simultaneous(reached, num_counted: int | None = None):
+    """The simultaneity rule: of the watched functions reached at one instant (`reached`, in
+    listing order: guards in the order of the system's transitions, then domain components),
+    the first fires; the event is *simultaneous* when more than one of the first `num_counted`
+    (all: None) was reached. Used at the start of an epoch (`epoch_start`, counting the
+    guards) and within a step (`first_event`). Returns `(index, simultaneous)`; index 0 when
+    none was reached."""
+    if reached.shape[0] == 0:
+        return jnp.array(0, jnp.int32), jnp.array(False)
+    counted = reached if num_counted is None else reached[:num_counted]
+    return jnp.argmax(reached).astype(jnp.int32), jnp.sum(counted) > 1
+
+
+def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
+    """The step's first event: each bracketed root located on the dense output (`locate_root`),
+    the earliest time t_min, and of the watched functions reached then (`simultaneous_set`) the
+    first in listing order. Located only when some execution has an event in the step (under
+    `jax.vmap`, `eqxi.unvmap_any`); none: `t_end`, index 0.
+    """
+    has, a, b = br
+    any_event = jnp.any(has)
+
+    def locate(_):
+        def root(k, a_k, b_k):
+            return locate_root(lambda x: values_at(x)[k], a_k, b_k, tol)
+
+        tk = jax.vmap(root)(jnp.arange(has.shape[0]), a, b)
+        tk = jnp.where(has, tk, jnp.inf)
+        first = jnp.argmin(tk)
+        t_min = tk[first]
+        t_at = jnp.where(any_event, t_min, b[first])
+        cand = simultaneous_set(has, tk, t_min, tol, values_at(t_at), values_at(a[first]))
+        i, simultaneous = resolve_simultaneous(cand)
+        tk = jnp.where(cand & ~has, t_min, tk)
+        return EventChoice(jnp.where(any_event, tk[i], t_end), i, simultaneous)
+
+    def none(_):
+        return EventChoice(t_end, jnp.array(0, jnp.int32), jnp.array(False))
+
+    return lax.cond(eqxi.unvmap_any(any_event), locate, none, None)
+
+
+def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
+    """The event time and pre-event state, differentiable by the implicit function theorem.
+
+    The event lies at the elapsed time u* = t* - t_s after the start t_s of its step. The
+    returned time is t_s + u* - (g(t, x*) - [g]) / [D_t g + D_x g F] and the state
+    x* + [F] (t - t*), with x* the dense output at the fixed elapsed time u*, F = F(t*, x*)
+    the true vector field and [.] meaning stop_gradient: equal in value to (t*, x*), with
+
+        dt = dt_s - (D_t g dt_s + D_x g dx*) / gdot,    dx = dx* + F (dt - dt_s),
+
+    where dx* carries the dependence on the epoch's start state and parameters (the dense
+    output's coefficients). Holding u* fixed, rather than t*, makes a shift of the epoch's
+    start time reach the event time directly: for an autonomous flow and guard the event time
+    moves one-for-one with it, exactly, whatever the solver's local error. (Through t* it
+    would arrive as D_x g xdot / D_x g F, with xdot the dense output's slope: 1 + O(tol) at
+    every epoch, an error of every later event's derivative that grows with the square of the
+    event count.) The denominator uses F, not xdot: the true slope, accurate to the
+    tolerance where the dense output's slope is one order less so.
+
+    Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
+    (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
+    ill-conditioned.
+    """
+    t_s = interp.t0
+    t_at = t_s + sg(t_star - t_s)  # the value t* (to rounding), the derivative of the step's start
+    # The dense output at the fixed elapsed time u* for the derivative ((t_at - t_s) / h has
+    # none), and at t* itself for the value: t_s + (t* - t_s) can round to a neighbour of t*.
+    x_at = interp.evaluate(t_at)
+    x_star = sg(interp.evaluate(t_star)) + (x_at - sg(x_at))
+    F = kern.flow(mode, t_at, x_star, args)
+
+    def g(tt, xx):
+        return kern.guards(mode, tt, xx, args)[k]
+
+    g_val = g(t_at, x_star)
+    gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
+    gdot = sg(gt + unrolled_sum(gx * sg(F)))  # dg/dt along the true vector field (see `fold`)
+    size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(sg(F) ** 2))
+    grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
+    safe = jnp.where(gdot != 0, gdot, 1.0)
+    shift = -(g_val - sg(g_val)) / safe  # zero in value
+    t_ev = t_star + (t_at - sg(t_at)) + shift
+    return t_ev, x_star + F * shift, grazing

@@ -1,0 +1,1 @@
+"""Scenes: contact hybrid systems built from constraints."""

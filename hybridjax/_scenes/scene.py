@@ -1,0 +1,1031 @@
+r"""Scenes: rigid-body systems with unilateral and bilateral constraints, built into hybrid systems.
+
+A scene is a Lagrangian system with generalised coordinates $q \in \mathbb{R}^n$, a mass matrix
+$M(q)$, applied forces $f(t, q, \dot q)$ and named constraints $a_k(t, q)$, each unilateral
+($a_k \ge 0$, a contact) or bilateral ($a_k = 0$, a joint). Its modes are contact sets $A$ (the
+constraints held active), as A. M. Johnson, "Hybrid Dynamical Systems", section 1.1 describes
+for rigid bodies with contact. In mode $A$ (state $x = (q, \dot q)$):
+
+- flow: $M \ddot q = f + J_A^\top \lambda_A$, $J_A \ddot q = -\dot J_A \dot q$ (with the
+  $\partial_t$ terms of time-varying constraints), $J_A = \partial a_A / \partial q$ by AD, solved
+  together for $\ddot q$ and the contact forces $\lambda_A$ (one dense solve of the KKT system);
+- guards: an impact $a_k \le 0$ for each unilateral $k \notin A$, a lift-off $\lambda_j \le 0$
+  for each unilateral $j \in A$; the domain $D_A = \{a_k \ge 0, k \notin A;\ \lambda_A \ge 0\}$
+  is bounded by exactly these guards, so the system watches the guards alone;
+- resets: the impact map (below), the identity on lift-off.
+
+**Impacts.** When $k$ hits in mode $A$, impulses $P$ act on $C = A \cup \{k\}$:
+$\dot q^+ = \dot q^- + M^{-1} J_C^\top P$. A held constraint $i$ ends with
+$J_i \dot q^+ = -e_i J_i \dot q^-$ (Newton's law; $e_i = 0$ is a plastic impact, and the
+constraints of $A$ approach at speed 0, so only $k$'s restitution matters); a constraint whose
+impulse would be negative (pulling) is released instead: $P_i = 0$ and it must separate,
+$J_i \dot q^+ \ge 0$. Of the candidates (release none of $A$, then one, then two, ...) the first
+that satisfies both is taken (for independent constraints this linear complementarity problem has
+one solution). The new contact set is $C$ less the released constraints, and less $k$ if it
+restitutes ($e_k > 0$: it leaves the contact). A constraint whose contact force right after the
+impact is negative (a ball thrown at a ceiling) lifts off at once, in a zero-length epoch.
+Simultaneous impacts are taken one at a time in the constraints' order (the engine's rule for
+guards reached at the same instant); each later one sees the earlier ones held.
+
+**Modelling only what the scene requires.** From the initial contact sets the builder adds only
+the sets reached through *achievable* transitions: a transition is kept when the point search
+(`find_point`) finds a witness state of its source mode in its guard, under the values of `args`
+given. An impact needs $a_A = 0$, $\dot a_A = 0$, $a_k = 0$, the other contacts open, the flow in
+$A$ ($\lambda_A \ge 0$), an approach speed $-\dot a_k \ge$ `margin`, nonnegative impulses and
+separating releases, and an independent new set; a lift-off needs $\lambda_j \le -$`margin` (the
+guard's interior, where a flow crossing $\lambda_j = 0$ or a reset lands). Everything else is
+pruned and the system's repr says which and why. Sampling cannot prove a transition impossible:
+every pruned transition still leads, with its guard, to a terminal mode named
+`"unbuilt: <set>"`, whose empty domain ends the execution with `Status.BLOCKED` there, so an
+execution that reaches a contact set that was not built stops and names it.
+"""
+
+import functools
+import itertools
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._analysis.search import box_samples, find_point
+from .._core import small_linalg as small_linalg
+from .._definition.system import HybridSystem, Mode, Transition
+
+UNILATERAL = "unilateral"
+BILATERAL = "bilateral"
+FREE = "free"
+UNBUILT = "unbuilt: "
+
+
+def _nested_tuple(value):
+    """Lists and arrays as (nested) tuples of floats: a static field must be hashable."""
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return tuple(_nested_tuple(v) for v in value)
+    return float(value) if isinstance(value, (int, float, np.number)) else value
+
+
+def _range(value, dim, what):
+    try:
+        lo, hi = value
+    except (TypeError, ValueError):
+        raise ValueError(f"Scene: `{what}` must be (lower, upper), got {value!r}.") from None
+    lo = np.broadcast_to(np.asarray(lo, dtype=float), (dim,))
+    hi = np.broadcast_to(np.asarray(hi, dtype=float), (dim,))
+    if not np.all(hi >= lo):
+        raise ValueError(f"Scene: `{what}` needs lower <= upper componentwise, got {lo} and {hi}.")
+    return tuple(map(float, lo)), tuple(map(float, hi))
+
+
+class Constraint(eqx.Module):
+    r"""A named constraint $a(t, q, \text{args})$ of a `Scene`.
+
+    **Arguments:**
+
+    - `name`: a unique name (mode names are built from these).
+    - `fn`: `fn(t, q, args) -> scalar`, the gap $a$.
+    - `kind`: `"unilateral"` ($a \ge 0$, a contact that can open and close) or `"bilateral"`
+      ($a = 0$ always, a joint or a pinned foot, held in every mode).
+    - `restitution`: the impact law of a unilateral constraint: `None` (plastic, the default),
+      a number $e \in [0, 1]$, or `restitution(args) -> e`. With $e > 0$ the contact separates
+      after its impact (Newton's law $\dot a^+ = -e \dot a^-$) and is not added to the contact
+      set.
+    - `tangent`: optional `tangent(t, q, args) -> scalar`, the contact point's coordinate along
+      the surface, for a contact that sticks while it is held (a foot that does not slip,
+      unlimited friction): its rate $\dot b$ is held at 0 with the gap (the impact stops it
+      too), its force $\lambda_t$ is free in sign, and it is released with the gap.
+
+    !!! Example
+
+        ```python
+        floor = hj.Constraint("floor", lambda t, q, args: q[0], restitution=lambda args: args["e"])
+        ```
+    """
+
+    name: str = eqx.field(static=True)
+    fn: Callable = eqx.field(static=True)
+    kind: str = eqx.field(static=True, default=UNILATERAL)
+    restitution: float | Callable | None = eqx.field(static=True, default=None)
+    tangent: Callable | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        if not isinstance(self.name, str) or not self.name or "+" in self.name:
+            raise ValueError(f"Constraint name must be a non-empty string without '+', got {self.name!r}.")
+        if not callable(self.fn):
+            raise TypeError(f"Constraint '{self.name}': `fn` must be callable, got {self.fn!r}.")
+        if self.kind not in (UNILATERAL, BILATERAL):
+            raise ValueError(
+                f"Constraint '{self.name}': `kind` must be 'unilateral' or 'bilateral', got {self.kind!r}."
+            )
+        if self.tangent is not None and not callable(self.tangent):
+            raise TypeError(f"Constraint '{self.name}': `tangent` must be callable or None.")
+        e = self.restitution
+        if e is not None and self.kind == BILATERAL:
+            raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
+        if e is not None and not callable(e):
+            if isinstance(e, bool) or not isinstance(e, (int, float)) or not 0.0 <= e <= 1.0:
+                raise ValueError(
+                    f"Constraint '{self.name}': `restitution` must be None, a number in [0, 1] or "
+                    f"a function of args, got {e!r}."
+                )
+
+    @property
+    def restitutes(self) -> bool:
+        """True when an impact on this constraint separates it (restitution given and not 0)."""
+        return self.restitution is not None and (callable(self.restitution) or self.restitution > 0)
+
+    def coefficient(self, args) -> Any:
+        e = self.restitution
+        if e is None:
+            return 0.0
+        return e(args) if callable(e) else e
+
+
+class Scene(eqx.Module):
+    r"""A rigid-body scene: coordinates, mass matrix, applied forces and named constraints.
+
+    $M(q) \ddot q = f(t, q, \dot q) + J^\top \lambda$ with the constraints' forces $\lambda$;
+    `contact_system` builds its hybrid system.
+
+    **Arguments:**
+
+    - `dim`: the number $n$ of generalised coordinates $q$; the state is $x = (q, \dot q)$.
+    - `mass`: `mass(q, args) -> (n, n)`, symmetric positive definite.
+    - `forces`: `forces(t, q, dq, args) -> (n,)`, gravity, springs, controls.
+    - `constraints`: a sequence of `Constraint`, names unique.
+    - `q_range`, `dq_range`: `(lower, upper)` (scalars or length-$n$) boxes the builder samples
+      states from when it searches for achievable transitions.
+    - `t_range`: `(t_lo, t_hi)`, the times sampled (for time-varying constraints or forces).
+    - `names`: optional names of the coordinates (plot labels of $q$; $\dot q$'s get a `d`).
+
+    Errors at definition name the constraint at fault.
+
+    !!! Example
+
+        ```python
+        ball = hj.Scene(
+            dim=1, mass=lambda q, args: jnp.eye(1), forces=lambda t, q, dq, args: -args["g"] + 0 * q,
+            constraints=[hj.Constraint("floor", lambda t, q, args: q[0], restitution=0.8)],
+            q_range=(0.0, 2.0), dq_range=(-5.0, 5.0),
+        )
+        ```
+    """
+
+    dim: int = eqx.field(static=True)
+    mass: Callable = eqx.field(static=True)
+    forces: Callable = eqx.field(static=True)
+    constraints: tuple[Constraint, ...] = eqx.field(static=True, converter=tuple)
+    q_range: tuple = eqx.field(static=True, default=(-1.0, 1.0), converter=_nested_tuple)
+    dq_range: tuple = eqx.field(static=True, default=(-1.0, 1.0), converter=_nested_tuple)
+    t_range: tuple = eqx.field(static=True, default=(0.0, 0.0), converter=_nested_tuple)
+    names: tuple[str, ...] | None = eqx.field(static=True, default=None, converter=_nested_tuple)
+
+    def __check_init__(self):
+        if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim < 1:
+            raise ValueError(f"Scene: `dim` must be a positive int, got {self.dim!r}.")
+        if not callable(self.mass) or not callable(self.forces):
+            raise TypeError("Scene: `mass` and `forces` must be callable.")
+        seen = set()
+        for i, c in enumerate(self.constraints):
+            if not isinstance(c, Constraint):
+                raise TypeError(
+                    f"Scene: constraints[{i}] is {type(c).__name__}, expected hybridjax.Constraint."
+                )
+            if c.name in seen:
+                raise ValueError(f"Scene: duplicate constraint name '{c.name}'.")
+            seen.add(c.name)
+        if not self.constraints:
+            raise ValueError("Scene: give at least one Constraint.")
+        for what in ("q_range", "dq_range"):
+            _range(getattr(self, what), self.dim, what)
+        if len(self.t_range) != 2 or not self.t_range[0] <= self.t_range[1]:
+            raise ValueError(
+                f"Scene: `t_range` must be (t_lo, t_hi) with t_lo <= t_hi, got {self.t_range!r}."
+            )
+        if self.names is not None and len(self.names) != self.dim:
+            raise ValueError(f"Scene: `names` needs {self.dim} entries, got {len(self.names)}.")
+
+    @property
+    def constraint_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.constraints)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.constraint_names.index(name)
+        except ValueError:
+            raise ValueError(
+                f"Unknown constraint '{name}'; the scene's constraints: {list(self.constraint_names)}."
+            ) from None
+
+    def check(self, args: Any = None) -> None:
+        """Check the shapes of `mass`, `forces` and every constraint with these `args` (by
+        abstract evaluation), raising a ValueError that names the function at fault."""
+        n, dt = self.dim, jnp.result_type(float)
+        t, q = jax.ShapeDtypeStruct((), dt), jax.ShapeDtypeStruct((n,), dt)
+
+        def shape(fn, *xs):
+            return jax.eval_shape(lambda *ys: jnp.asarray(fn(*ys, args)), *xs).shape
+
+        if (s := shape(self.mass, q)) != (n, n):
+            raise ValueError(f"Scene: `mass` returns shape {s}, expected {(n, n)}.")
+        if (s := shape(self.forces, t, q, q)) != (n,):
+            raise ValueError(f"Scene: `forces` returns shape {s}, expected {(n,)}.")
+        for c in self.constraints:
+            for role, fn in (("fn", c.fn), ("tangent", c.tangent)):
+                if fn is not None and (s := shape(fn, t, q)) not in ((), (1,)):
+                    raise ValueError(f"Constraint '{c.name}': `{role}` returns shape {s}, expected a scalar.")
+
+
+class Relabel(eqx.Module):
+    r"""Identify contact set `source` with contact set `target` through a change of coordinates.
+
+    A body with symmetric parts (the spokes of a wheel, the legs of a walker) reaches sets that
+    are the same physical situation with the parts renamed. A transition into `source` goes to
+    `target` instead, with $q' = $ `q_map(t, q, args)` and $\dot q' = \partial_q$`q_map`$\,\dot q$
+    applied after its reset; `source` is never built. `q_map` must carry the constraints of
+    `source` onto those of `target` (a rotation by the spoke angle, a shift of the origin to the
+    new stance foot), so that the periodic gait of a walker is a periodic orbit of the system.
+
+    !!! Example
+
+        ```python
+        # spoke 1 becomes spoke 0: rotate back by 2 alpha, put the new foot at x = 0
+        hj.Relabel(("spoke1",), ("spoke0",), q_map=lambda t, q, args: ...)
+        ```
+    """
+
+    source: tuple[str, ...] = eqx.field(static=True, converter=tuple)
+    target: tuple[str, ...] = eqx.field(static=True, converter=tuple)
+    q_map: Callable = eqx.field(static=True)
+
+    def __check_init__(self):
+        if not callable(self.q_map):
+            raise TypeError(f"Relabel {self.source} -> {self.target}: `q_map` must be callable.")
+
+    def state_map(self, n: int) -> Callable:
+        """(t, x, args) -> (q_map(q), D q_map dq)."""
+
+        def m(t, x, args):
+            q2, dq2 = jax.jvp(lambda q_: jnp.asarray(self.q_map(t, q_, args), x.dtype), (x[:n],), (x[n:],))
+            return jnp.concatenate([q2, dq2])
+
+        return m
+
+
+def _then(reset: Callable, relabel_map: Callable | None) -> Callable:
+    if relabel_map is None:
+        return reset
+    return lambda t, x, args: relabel_map(t, reset(t, x, args), args)
+
+
+def _identity(t, x, args):
+    return x
+
+
+# ----------------------------------------------------------------------------- mechanics
+
+
+def _gaps(fns, t, q, args):
+    return jnp.stack([jnp.reshape(jnp.asarray(f(t, q, args), q.dtype), ()) for f in fns])
+
+
+def constraint_kinematics(fns, t, q, dq, args):
+    r"""Gaps $a$, Jacobian $J = \partial a / \partial q$, rates $\dot a$ and the bias
+    $c = \ddot a - J \ddot q$ (so that $\ddot a = 0$ is $J \ddot q = -c$), all by AD."""
+    t = jnp.asarray(t, q.dtype)
+    gap = lambda t_, q_: _gaps(fns, t_, q_, args)
+    J = jax.jacfwd(gap, argnums=1)(t, q)
+    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))[1]
+    adot, bias = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
+    return gap(t, q), J, adot, bias
+
+
+def kkt_solve(M, top, J, bottom, mask, least_norm=False):
+    r"""Solve $M u - J^\top \mathrm{diag}(m) \mu = $ `top`, $m_i (J u)_i + (1 - m_i) \mu_i = m_i$
+    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$).
+
+    With `least_norm`, the held rows read $(J u)_i + \varepsilon \mu_i = $ `bottom`$_i$ with
+    $\varepsilon = 10^{-10} \operatorname{tr}(J M^{-1} J^\top) / K$: eliminating $u$ leaves
+    $(J M^{-1} J^\top + \varepsilon I) \mu = \ldots$, whose solution tends to the least-norm
+    $\mu$ of dependent rows as $\varepsilon \to 0$ (the held rates are met to $\varepsilon |\mu|$).
+    Solved by elimination written as array operations (`_small_linalg.solve`), not LAPACK."""
+    n = M.shape[0]
+    Jm = mask[:, None] * J
+    corner = jnp.diag(1.0 - mask)
+    if least_norm:
+        G = Jm @ small_linalg.solve(M, Jm.T)
+        corner = corner + 1e-10 * jnp.trace(G) / max(J.shape[0], 1) * jnp.diag(mask)
+    K = jnp.block([[M, -Jm.T], [Jm, corner]])
+    rhs = jnp.concatenate([top, mask * bottom])
+    sol = small_linalg.solve(K, rhs)
+    return sol[:n], sol[n:]
+
+
+def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False):
+    r"""$\ddot q$ and $\lambda$ of the constraints `fns` held where `mask` is 1:
+    $M \ddot q = f + J^\top \lambda$, $J \ddot q = -c$ on the held rows."""
+    M = jnp.asarray(scene.mass(q, args), q.dtype)
+    f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
+    if not fns:
+        return small_linalg.solve(M, f), jnp.zeros((0,), q.dtype)
+    _, J, _, bias = constraint_kinematics(fns, t, q, dq, args)
+    return kkt_solve(M, f, J, -bias, mask, least_norm)
+
+
+def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
+    r"""The impact on the constraints `fns` held where `held` is 1: $\dot q^+ = \dot q^- + M^{-1}
+    J^\top P$ with $J_i \dot q^+ = -e_i J_i \dot q^-$ on the held rows and $P_i = 0$ on the others.
+    Returns $\dot q^+$, $P$ and the rates $J \dot q^+$."""
+    M = jnp.asarray(scene.mass(q, args), q.dtype)
+    _, J, adot, _ = constraint_kinematics(fns, t, q, dq, args)
+    # Rates include any explicit time dependence: J dq+ + a_t = -e (J dq- + a_t).
+    a_t = adot - J @ dq
+    dq_plus, P = kkt_solve(M, M @ dq, J, -e * adot - (1.0 + e) * a_t, held, least_norm)
+    return dq_plus, P, J @ dq_plus + a_t
+
+
+def independence(scene, fns, held, t, q, args):
+    r"""How far the held constraints are from dependent: the smallest pivot of the Cholesky
+    factorisation with diagonal pivoting of $G = J M^{-1} J^\top$ on the held rows (identity
+    rows elsewhere), over its largest diagonal entry (`_small_linalg.rank_ratio`): 1 for
+    orthogonal unit constraints, 0 to rounding for dependent ones."""
+    M = jnp.asarray(scene.mass(q, args), q.dtype)
+    J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
+    G = J @ small_linalg.solve(M, J.T)
+    scale = jnp.max(jnp.where(held > 0, jnp.diagonal(G), 0.0))
+    G = held[:, None] * held[None, :] * G + jnp.where(scale > 0, scale, 1.0) * jnp.diag(1.0 - held)
+    return small_linalg.rank_ratio(0.5 * (G + G.T))
+
+
+_INDEPENDENT = 1e-9  # `independence` below this: dependent
+
+
+# ----------------------------------------------------------------------------- contact sets
+
+
+def set_name(scene: Scene, contact_set) -> str:
+    """The mode name of a contact set: its constraints' names joined by '+', or 'free'."""
+    if not contact_set:
+        return FREE
+    return "+".join(scene.constraints[i].name for i in sorted(contact_set))
+
+
+def rows(scene: Scene, members) -> tuple[tuple, tuple]:
+    """The rows of the constraints `members` (indices, in order): their gaps, then the
+    tangential coordinates of those that stick. Returns (functions, owners): row r belongs to
+    constraint owners[r]; row i < len(members) is the gap of members[i]."""
+    sticky = [k for k in members if scene.constraints[k].tangent is not None]
+    fns = tuple(scene.constraints[k].fn for k in members) + tuple(
+        scene.constraints[k].tangent for k in sticky
+    )
+    return fns, tuple(members) + tuple(sticky)
+
+
+def _row_mask(owners, members_mask, dtype):
+    """A mask over rows from one over constraints (indexed by constraint)."""
+    return jnp.asarray(members_mask, dtype)[np.asarray(owners, dtype=int)]
+
+
+def _releases(held_unilateral):
+    """Release candidates R of the held unilateral constraints: none, then one, then two..."""
+    return [
+        frozenset(r)
+        for size in range(len(held_unilateral) + 1)
+        for r in itertools.combinations(sorted(held_unilateral), size)
+    ]
+
+
+class _Impact(eqx.Module):
+    """Impact of constraint `k` in contact set `A` with release candidate `R`, on the constraint
+    indices `order` (A's, then k); static description, functions of (t, x, args)."""
+
+    scene: Scene = eqx.field(static=True)
+    source: tuple = eqx.field(static=True)  # sorted indices of A
+    k: int = eqx.field(static=True)
+    candidates: tuple = eqx.field(static=True)  # release sets, each a sorted tuple
+    least_norm: bool = eqx.field(static=True)
+
+    @property
+    def order(self):
+        return self.source + (self.k,)
+
+    def fns(self):
+        return rows(self.scene, self.order)[0]
+
+    def _e(self, args, dtype):
+        e_k = self.scene.constraints[self.k].coefficient(args)
+        num_rows = len(self.fns())
+        return jnp.zeros(num_rows, dtype).at[len(self.order) - 1].set(jnp.asarray(e_k, dtype))
+
+    def held(self, c, dtype):
+        """The held rows of candidate `c` (the released constraints' rows are 0)."""
+        release = self.candidates[c]
+        return jnp.asarray([0.0 if i in release else 1.0 for i in rows(self.scene, self.order)[1]], dtype)
+
+    def outcome(self, c, t, x, args):
+        n = self.scene.dim
+        q, dq = x[:n], x[n:]
+        return impact(
+            self.scene,
+            self.fns(),
+            self.held(c, x.dtype),
+            self._e(args, x.dtype),
+            t,
+            q,
+            dq,
+            args,
+            self.least_norm,
+        )
+
+    def valid(self, c, t, x, args):
+        """Whether candidate `c` solves the impact: held impulses >= 0, released rates >= 0, and
+        the held constraints independent."""
+        _, P, rates = self.outcome(c, t, x, args)
+        held = self.held(c, x.dtype)
+        m = len(self.order)  # the gaps' rows: impulses and separation are judged on these
+        scale = 1.0 + jnp.max(jnp.abs(P))
+        ok_P = jnp.all(jnp.where(held[:m] > 0, P[:m] >= -1e-9 * scale, True))
+        tol_v = 1e-9 * (1.0 + jnp.max(jnp.abs(rates)))
+        ok_v = jnp.all(jnp.where(held[:m] > 0, True, rates[:m] >= -tol_v))
+        ok_i = independence(self.scene, self.fns(), held, t, x[: self.scene.dim], args) > _INDEPENDENT
+        return ok_P & ok_v & (ok_i | self.least_norm)
+
+    def select(self, t, x, args):
+        """The index of the first valid candidate, -1 if none."""
+        choice = jnp.array(-1, jnp.int32)
+        for c in reversed(range(len(self.candidates))):
+            choice = jnp.where(self.valid(c, t, x, args), c, choice)
+        return choice
+
+    def guard(self, chosen: tuple):
+        """a_k where the selected candidate is in `chosen`, positive elsewhere."""
+        k_fn = self.scene.constraints[self.k].fn
+        if len(chosen) == len(self.candidates):
+            return lambda t, x, args: k_fn(t, x[: self.scene.dim], args)
+
+        def g(t, x, args):
+            a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
+            # Which outcome holds is a discrete choice: no derivative flows through it.
+            sel = self.select(*jax.lax.stop_gradient((t, x, args)))
+            hit = jnp.any(jnp.stack([sel == c for c in chosen])) if chosen else False
+            return jnp.where(hit, a, jnp.abs(a) + 1.0)
+
+        return g
+
+    def reset(self, c):
+        n = self.scene.dim
+
+        def r(t, x, args):
+            dq_plus, _, _ = self.outcome(c, t, x, args)
+            return jnp.concatenate([x[:n], dq_plus])
+
+        return r
+
+    def target(self, c) -> frozenset:
+        held = (set(self.source) | {self.k}) - set(self.candidates[c])
+        if self.scene.constraints[self.k].restitutes:
+            held.discard(self.k)
+        return frozenset(held)
+
+
+class _ModeFunctions(eqx.Module):
+    """Flow and contact forces of contact set `held` (sorted indices), `form` "branch" (solve
+    with the held constraints only) or "mask" (all constraints, the others masked out)."""
+
+    scene: Scene = eqx.field(static=True)
+    held: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+    least_norm: bool = eqx.field(static=True)
+
+    def _fns_mask(self, dtype):
+        if self.form == "mask":
+            K = len(self.scene.constraints)
+            fns, owners = rows(self.scene, range(K))
+            return fns, _row_mask(owners, [1.0 if i in self.held else 0.0 for i in range(K)], dtype)
+        fns, _ = rows(self.scene, self.held)
+        return fns, jnp.ones(len(fns), dtype)
+
+    def solve(self, t, x, args):
+        n = self.scene.dim
+        fns, mask = self._fns_mask(x.dtype)
+        return constrained_acceleration(self.scene, fns, mask, t, x[:n], x[n:], args, self.least_norm)
+
+    def flow(self, t, x, args):
+        ddq, _ = self.solve(t, x, args)
+        return jnp.concatenate([x[self.scene.dim :], ddq])
+
+    def force(self, j, offset=0.0):
+        """lambda_j + offset, the force of held constraint j (a lift-off guard)."""
+        pos = j if self.form == "mask" else self.held.index(j)
+        return lambda t, x, args: self.solve(t, x, args)[1][pos] + offset
+
+
+def _terminal_flow(t, x, args):
+    return jnp.zeros_like(x)
+
+
+def _terminal_domain(t, x, args):
+    return -jnp.ones((), x.dtype)
+
+
+# ----------------------------------------------------------------------------- search queries
+
+
+class _Query(eqx.Module):
+    """The conditions of one search as masks over the K constraints (all arrays, so that one
+    compiled search checks every query of a level under `vmap`)."""
+
+    held: Array  # source set A
+    lift: Array  # one-hot lift-off constraint (or zeros)
+    hit: Array  # one-hot impacting constraint (or zeros)
+    impact_held: Array  # C less the released constraints (zeros for a lift-off)
+    released: Array  # the released constraints
+    flowing: Array  # scalar 1: lambda_A >= 0 required (impacts)
+
+
+@functools.cache
+def _query_functions(scene: Scene, margin: float, least_norm: bool):
+    """The equalities and inequalities of every query (cached: later builds of one scene, with
+    other `args`, reuse the compiled search)."""
+    K, n = len(scene.constraints), scene.dim
+    fns, owners = rows(scene, range(K))
+    unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
+
+    def parts(t, x, p):
+        args, Q = p
+        q, dq = x[:n], x[n:]
+        held_rows = _row_mask(owners, Q.held, x.dtype)
+        a, _, adot, _ = constraint_kinematics(fns, t, q, dq, args)
+        _, lam = constrained_acceleration(scene, fns, held_rows, t, q, dq, args, least_norm)
+        e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
+        e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
+        impact_rows = _row_mask(owners, Q.impact_held, x.dtype)
+        _, P, rates = impact(scene, fns, impact_rows, e, t, q, dq, args, least_norm)
+        a, adot_gap, lam, P, rates = a[:K], adot[:K], lam[:K], P[:K], rates[:K]
+        uni = jnp.asarray(unilateral, x.dtype)
+        eq = jnp.concatenate([Q.held * a, held_rows * adot, Q.hit * a])
+        adot = adot_gap
+        one = jnp.ones_like(a)
+        ineq = [
+            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, a, one),
+            jnp.where((uni * Q.held * Q.flowing) > 0, lam, one),
+            jnp.where(Q.lift > 0, -lam - margin, one),
+            jnp.where(Q.hit > 0, -adot - margin, one),
+            jnp.where(Q.impact_held * uni > 0, P, one),
+            jnp.where(Q.released > 0, rates, one),
+        ]
+        ineq = jnp.concatenate(ineq)
+        # A singular contact system (dependent constraints at a sample) gives non-finite values:
+        # they count as violated, and finite.
+        eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
+        return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
+
+    return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
+
+
+def _run_queries(scene, queries, args_batch, samples, margin, least_norm, tol, num_starts):
+    """find_point for every (query, args value): Witness with leading axes (Q, V)."""
+    ts, xs = samples
+    eq, ineq = _query_functions(scene, margin, least_norm)
+    Q = len(queries)
+    padded = max(8, 1 << max(Q - 1, 0).bit_length())  # powers of two: few distinct compiled sizes
+    queries = list(queries) + [queries[0]] * (padded - Q)
+    stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries)
+    out = _search(eq, ineq, ts, xs, stacked, args_batch, tol, num_starts)
+    return jtu.tree_map(lambda a: np.asarray(a)[:Q], out)
+
+
+@eqx.filter_jit
+def _search(eq, ineq, ts, xs, queries, args_batch, tol, num_starts):
+    def one(Q, args):
+        return find_point(eq, ineq, ts, xs, (args, Q), tol=tol, num_starts=num_starts)
+
+    # The index makes the inner vmap well defined for `args` without arrays (None).
+    index, args_batch = args_batch
+    return jax.vmap(lambda Q: jax.vmap(lambda i, a: one(Q, a))(index, args_batch))(queries)
+
+
+# ----------------------------------------------------------------------------- the system
+
+
+class ContactSystem(HybridSystem):
+    """The hybrid system of a `Scene`, built by `contact_system`: an ordinary `HybridSystem`
+    (every tool works on it) whose modes are contact sets, with what the builder found.
+
+    - `scene`: the scene.
+    - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
+      `"unbuilt: <set>"` modes).
+    - `report`: the lines of the build report (built transitions with a witness state, pruned
+      transitions and sets with the reason); the repr prints them.
+    - `contact_forces(sol)`: the contact forces at the solution's saved states.
+    """
+
+    scene: Scene = eqx.field(static=True)
+    contact_sets: tuple = eqx.field(static=True)
+    least_norm_modes: tuple = eqx.field(static=True)
+    report: tuple = eqx.field(static=True)
+    achievable: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+
+    def __init__(
+        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form
+    ):
+        super().__init__(modes, transitions)
+        self.scene = scene
+        self.contact_sets = contact_sets
+        self.least_norm_modes = least_norm_modes
+        self.report = report
+        self.achievable = achievable
+        self.form = form
+
+    @property
+    def force_names(self) -> tuple[str, ...]:
+        """The columns of `contact_forces`: the constraints' names, then `"<name>.t"` for the
+        tangential force of each sticking contact."""
+        _, owners = rows(self.scene, range(len(self.scene.constraints)))
+        K = len(self.scene.constraints)
+        return tuple(self.scene.constraints[k].name + (".t" if r >= K else "") for r, k in enumerate(owners))
+
+    @property
+    def built_sets(self) -> tuple[frozenset, ...]:
+        """The contact sets built as modes (sets of constraint names)."""
+        return tuple(frozenset(s) for s in self.contact_sets if s is not None)
+
+    def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
+        r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
+        per sticking contact's tangential force, as `force_names`; 0 for a constraint not held) at
+        the saved states `sol.ts`, `sol.ys` of a solution of this system
+        (NaN at save times the execution did not reach). `args` defaults to `sol.args` (for a
+        batch, one value per execution)."""
+        args = sol.args if args is None else args
+        scene, K = self.scene, len(self.scene.constraints)
+        fns, owners = rows(scene, range(K))
+        table = np.zeros((self.num_modes, K))
+        for m, s in enumerate(self.contact_sets):
+            for name in s or ():
+                table[m, scene.index(name)] = 1.0
+        table = table[:, np.asarray(owners, dtype=int)]
+        least_norm = any(self.least_norm_modes)
+        n = scene.dim
+
+        def one(t, y, mode, args):
+            ok = (mode >= 0) & jnp.isfinite(t)
+            mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
+            y = jnp.where(ok, y, 0.0)
+            t = jnp.where(ok, t, 0.0)
+            _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
+            return jnp.where(ok, lam * mask, jnp.nan)
+
+        def execution(ts, ys, modes, args):
+            return jax.vmap(lambda t, y, m: one(t, y, m, args))(ts, ys, modes)
+
+        if sol.ts.ndim == 1:
+            return execution(sol.ts, sol.ys, sol.saved_modes, args)
+        # A batch: `sol.args` holds one value per execution (leaves with the batch's leading axis).
+        size = sol.ts.shape[0]
+        axes = jtu.tree_map(lambda a: 0 if jnp.ndim(a) >= 1 and jnp.shape(a)[0] == size else None, args)
+        return jax.vmap(execution, in_axes=(0, 0, 0, axes))(sol.ts, sol.ys, sol.saved_modes, args)
+
+    def __repr__(self) -> str:
+        return "\n".join([f"Contact{super().__repr__()}", *self.report])
+
+    def _repr_html_(self) -> str:
+        import html
+
+        lines = "<br>".join(html.escape(line) for line in self.report)
+        return super()._repr_html_() + f"<div><pre>{lines}</pre></div>"
+
+
+def _as_set(scene: Scene, contact_set) -> frozenset:
+    if isinstance(contact_set, str):
+        contact_set = () if contact_set == FREE else contact_set.split("+")
+    idx = frozenset(scene.index(name) for name in contact_set)
+    bilateral = {i for i, c in enumerate(scene.constraints) if c.kind == BILATERAL}
+    return idx | bilateral
+
+
+def _fmt(x) -> str:
+    return "(" + ", ".join(f"{v:.3g}" for v in np.ravel(x)) + ")"
+
+
+def contact_system(
+    scene: Scene,
+    initial: Sequence,
+    args: Any = None,
+    *,
+    args_values: Sequence | None = None,
+    num_samples: int = 512,
+    num_starts: int = 8,
+    margin: float = 1e-3,
+    tol: float = 1e-14,
+    seed: int = 0,
+    redundant: str = "error",
+    form: str = "branch",
+    max_modes: int = 64,
+    relabels: Sequence[Relabel] = (),
+) -> ContactSystem:
+    r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
+
+    Starting from the `initial` contact sets, each transition out of a built set (an impact of
+    each open contact with each release candidate, a lift-off of each held contact) is kept
+    when the point search finds a witness state in its guard for one of the `args` values
+    (see the module notes for the conditions); its target set is then built too. What is
+    never found is pruned and listed, with the reason, in the repr; a pruned transition still
+    fires into a terminal mode `"unbuilt: <set>"` that ends the execution with `BLOCKED`.
+
+    **Arguments:**
+
+    - `scene`: the `Scene`.
+    - `initial`: the initial contact sets, each a sequence of constraint names or a mode name
+      (`"free"`, `"G+H"`); bilateral constraints are always held.
+    - `args`: the scene's `args`; or `args_values`: a sequence of them (a slope angle's values,
+      or samples of its range) to build over: a transition found for any of them is kept, and
+      the repr says for which. A batch or a derivative across values that change the modes
+      built needs a system built over all of them.
+    - `num_samples`, `num_starts`, `tol`, `seed`: the point search (samples drawn in the
+      scene's `q_range` x `dq_range` x `t_range`; violation accepted as zero).
+    - `margin`: the least approach speed of an impact and the least pulling force of a
+      lift-off that a witness must show, in the scene's units.
+    - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
+      naming them) or `"least_norm"` (its contact forces are the least-norm solution).
+    - `form`: `"branch"` (each mode solves with its held constraints only) or `"mask"` (every
+      mode solves with all constraints, those not held masked out).
+    - `max_modes`: a build that would exceed this many modes stops with an error.
+    - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
+      set goes to its `target` set, the state relabelled).
+
+    !!! Example
+
+        ```python
+        system = hj.contact_system(scene, initial=["free"], args={"g": 9.81})
+        system              # modes, transitions, witnesses, and what was pruned and why
+        sol = hj.simulate(system, x0, "free", 0.0, 2.0, {"g": 9.81})
+        system.contact_forces(sol)
+        ```
+    """
+    if redundant not in ("error", "least_norm"):
+        raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
+    if form not in ("branch", "mask"):
+        raise ValueError(f"contact_system: `form` must be 'branch' or 'mask', got {form!r}.")
+    values = list(args_values) if args_values is not None else [args]
+    if not values:
+        raise ValueError("contact_system: `args_values` is empty.")
+    for v in values:
+        scene.check(v)
+    least_norm = redundant == "least_norm"
+    K, n = len(scene.constraints), scene.dim
+    dtype = jnp.result_type(float)
+    unilateral = {i for i, c in enumerate(scene.constraints) if c.kind == UNILATERAL}
+    args_batch = (
+        jnp.arange(len(values)),
+        jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
+    )
+
+    key = jax.random.key(seed)
+    (qlo, qhi), (vlo, vhi) = _range(scene.q_range, n, "q_range"), _range(scene.dq_range, n, "dq_range")
+    lo = jnp.asarray(qlo + vlo + (scene.t_range[0],), dtype)
+    hi = jnp.asarray(qhi + vhi + (scene.t_range[1],), dtype)
+    pts = box_samples(key, lo, hi, num_samples)
+    samples = (pts[:, -1], pts[:, :-1])
+
+    def onehot(idx):
+        return jnp.asarray([1.0 if i in idx else 0.0 for i in range(K)], dtype)
+
+    def query(A, lift=(), hit=(), impact_held=(), released=(), flowing=0.0):
+        return _Query(
+            onehot(A),
+            onehot(lift),
+            onehot(hit),
+            onehot(impact_held),
+            onehot(released),
+            jnp.asarray(flowing, dtype),
+        )
+
+    def search(qs):
+        return _run_queries(scene, qs, args_batch, samples, margin, least_norm, tol, num_starts)
+
+    # Initial sets: a consistent state (held gaps and rates 0, the others open), where the held
+    # constraints are independent (or `redundant="least_norm"`).
+    initial_sets = list(dict.fromkeys(_as_set(scene, s) for s in initial))
+    if not initial_sets:
+        raise ValueError("contact_system: give at least one initial contact set.")
+    w = search([query(A) for A in initial_sets])
+    built: dict[frozenset, bool] = {}  # set -> least-norm
+    report: list[str] = []
+    for i, A in enumerate(initial_sets):
+        if not w.found[i].any():
+            raise ValueError(
+                f"contact_system: the initial contact set {set_name(scene, A)} has no consistent state "
+                "in the scene's ranges (held gaps and rates 0, the other contacts open; least violation "
+                f"{np.nanmin(w.violation[i]):.2g}, infinite where the held constraints are dependent)."
+            )
+        v = int(np.argmax(w.found[i]))
+        fns, owners = rows(scene, range(K))
+        held_rows = _row_mask(owners, onehot(A), dtype)
+        ratio = independence(scene, fns, held_rows, w.t[i, v], jnp.asarray(w.x[i, v, :n]), values[v])
+        if ratio <= _INDEPENDENT and not least_norm:
+            names = [scene.constraints[j].name for j in sorted(A)]
+            raise ValueError(
+                f"contact_system: the initial contact set {set_name(scene, A)} has dependent constraints "
+                f"{names} (redundant contacts); pass redundant='least_norm' for least-norm contact "
+                "forces, or remove one of them."
+            )
+        built[A] = least_norm
+
+    relabel_of = {}
+    for r in relabels:
+        if not isinstance(r, Relabel):
+            raise TypeError(f"contact_system: relabels must be hybridjax.Relabel, got {type(r).__name__}.")
+        relabel_of[_as_set(scene, r.source)] = (_as_set(scene, r.target), r.state_map(n))
+
+    def canonical(T):
+        return relabel_of.get(T, (T, None))
+
+    impacts: dict[tuple, _Impact] = {}
+    outcomes: dict[tuple, list] = {}  # (A, kind, j) -> per candidate: (c, target, found, text)
+    frontier = list(built)
+    while frontier:
+        qs, keys = [], []
+        for A in frontier:
+            for k in sorted(unilateral - A):
+                # A candidate with more rows than coordinates is dependent wherever it is: it
+                # can hold only with least-norm impulses.
+                releases = tuple(
+                    tuple(sorted(r))
+                    for r in _releases(A & unilateral)
+                    if least_norm or len(rows(scene, sorted((A | {k}) - r))[0]) <= n
+                )
+                imp = _Impact(scene, tuple(sorted(A)), k, releases, least_norm)
+                impacts[(A, k)] = imp
+                for c, R in enumerate(imp.candidates):
+                    held = (A | {k}) - set(R)
+                    qs.append(query(A, hit={k}, impact_held=held, released=set(R), flowing=1.0))
+                    keys.append((A, "impact", k, c, imp.target(c)))
+            for j in sorted(A & unilateral):
+                qs.append(query(A, lift={j}))
+                keys.append((A, "lift-off", j, 0, A - {j}))
+        frontier = []
+        if not qs:
+            break
+        w = search(qs)
+        for i, (A, kind, j, c, T) in enumerate(keys):
+            found_v = w.found[i]
+            if found_v.any():
+                v = int(np.argmax(found_v))
+                where = (
+                    ""
+                    if found_v.all()
+                    else f", only for args_values {[int(i) for i in np.flatnonzero(found_v)]}"
+                )
+                text = f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
+                T = canonical(T)[0]
+                if T not in built:
+                    if len(built) >= max_modes:
+                        raise ValueError(
+                            f"contact_system: more than max_modes={max_modes} contact sets reached."
+                        )
+                    built[T] = least_norm
+                    frontier.append(T)
+                outcomes.setdefault((A, kind, j), []).append((c, T, True, text))
+            else:
+                least = float(
+                    np.nanmin(np.where(np.isfinite(w.violation[i]), w.violation[i], np.nan), initial=np.inf)
+                )
+                why = (
+                    f"no state of the source set found in the guard (least violation {least:.2g})"
+                    if np.isfinite(least)
+                    else "the contact equations are singular (dependent constraints) at every state tried"
+                )
+                outcomes.setdefault((A, kind, j), []).append((c, T, False, why))
+
+    # Assemble: built modes, then terminal modes for unbuilt targets.
+    order = list(built)
+    modes, transitions, achievable = [], [], []
+    mode_fns = {A: _ModeFunctions(scene, tuple(sorted(A)), form, built[A]) for A in order}
+    names = scene.names or tuple(f"q[{i}]" for i in range(n))
+    comp = tuple(names) + tuple(f"d{s}" for s in names)
+    for A in order:
+        modes.append(Mode(set_name(scene, A), mode_fns[A].flow, dim=2 * n, names=comp))
+    terminals: dict[str, None] = {}
+    pruned_lines = []
+    for A in order:
+        src = set_name(scene, A)
+        for (A_, kind, j), items in outcomes.items():
+            if A_ != A:
+                continue
+            cname = scene.constraints[j].name
+            if kind == "impact":
+                imp = impacts[(A, j)]
+                chosen = tuple(c for c, _, ok, _ in items if ok)
+                for c, T, ok, text in items:
+                    if ok:
+                        tgt, relabel_map = canonical(imp.target(c))
+                        via = (
+                            ""
+                            if relabel_map is None
+                            else f" (relabelled from {set_name(scene, imp.target(c))})"
+                        )
+                        transitions.append(
+                            Transition(
+                                src,
+                                set_name(scene, tgt),
+                                guard=imp.guard((c,)),
+                                reset=_then(imp.reset(c), relabel_map),
+                                name=f"impact {cname}: {src} -> {set_name(scene, tgt)}",
+                            )
+                        )
+                        achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
+                    else:
+                        released = [scene.constraints[i].name for i in imp.candidates[c]]
+                        rel = f" releasing {'+'.join(released)}" if released else ""
+                        pruned_lines.append(
+                            f"  pruned: impact of {cname} in {src}{rel} -> {set_name(scene, T)}: {text}"
+                        )
+                if len(chosen) < len(items):
+                    T0 = imp.target(0)
+                    term = UNBUILT + set_name(scene, T0)
+                    terminals[term] = None
+                    others = tuple(c for c in range(len(imp.candidates)) if c not in chosen)
+                    transitions.append(
+                        Transition(
+                            src, term, guard=imp.guard(others), name=f"impact {cname}: {src} -> {term}"
+                        )
+                    )
+            else:
+                c, T, ok, text = items[0]
+                if ok:
+                    tgt, relabel_map = canonical(T)
+                    via = "" if relabel_map is None else f" (relabelled from {set_name(scene, T)})"
+                    transitions.append(
+                        Transition(
+                            src,
+                            set_name(scene, tgt),
+                            guard=mode_fns[A].force(j),
+                            reset=_then(_identity, relabel_map),
+                            name=f"lift-off {cname}: {src} -> {set_name(scene, tgt)}",
+                        )
+                    )
+                    achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
+                else:
+                    term = UNBUILT + set_name(scene, T)
+                    terminals[term] = None
+                    transitions.append(
+                        Transition(
+                            src,
+                            term,
+                            # The search found no state with lambda_j <= -margin; a force between
+                            # that and 0 (a contact that carries none, such as a wall beside a
+                            # resting point, whose force is 0 up to rounding) stays held.
+                            guard=mode_fns[A].force(j, margin),
+                            name=f"lift-off {cname}: {src} -> {term}",
+                        )
+                    )
+                    pruned_lines.append(
+                        f"  pruned: lift-off of {cname} in {src} -> {set_name(scene, T)}: {text}"
+                    )
+    for term in terminals:
+        modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
+
+    candidates = {T for items in outcomes.values() for _, T, _, _ in items} | set(built)
+    candidates -= set(relabel_of) - set(built)
+    unreached = sorted(candidates - set(built), key=lambda s: (len(s), sorted(s)))
+    report.append(
+        f"contact sets built: {len(built)} of 2^{len(unilateral)} = {2 ** len(unilateral)} "
+        f"({', '.join(set_name(scene, A) for A in order)})"
+    )
+    for src, tgt, kind, cname, text in achievable:
+        report.append(f"  achievable: {kind} of {cname}: {src} -> {tgt}; {text}")
+    report.extend(pruned_lines)
+    for T in unreached:
+        report.append(f"  pruned set {set_name(scene, T)}: no achievable transition into it was found")
+    never = 2 ** len(unilateral) - len(candidates)
+    if never > 0:
+        report.append(
+            f"  {never} other contact sets: not adjacent to a built set (no transition leads there)"
+        )
+    if len(values) > 1:
+        report.append(
+            f"  built over {len(values)} args values: a batch or a derivative across values "
+            "that change the transitions found needs a system built over all of them"
+        )
+    if any(built[A] for A in order):
+        report.append(
+            "  least-norm contact forces in: " + ", ".join(set_name(scene, A) for A in order if built[A])
+        )
+
+    contact_sets = tuple(tuple(scene.constraints[i].name for i in sorted(A)) for A in order)
+    contact_sets = contact_sets + (None,) * len(terminals)
+    return ContactSystem(
+        modes,
+        transitions,
+        scene=scene,
+        contact_sets=contact_sets,
+        least_norm_modes=tuple(built[A] for A in order) + (False,) * len(terminals),
+        report=tuple(report),
+        achievable=tuple(achievable),
+        form=form,
+    )

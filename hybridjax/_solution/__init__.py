@@ -1,0 +1,1 @@
+"""The solution of a run and its dense output."""

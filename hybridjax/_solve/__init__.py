@@ -1,0 +1,1 @@
+"""The entry points: `simulate`, `simulate_batch`, and compilation for direct calls."""

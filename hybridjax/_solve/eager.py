@@ -1,0 +1,154 @@
+"""Calls made outside `jax.jit`, compiled once per configuration and reused.
+
+`simulate` and `simulate_batch` build their loop (closures over the system, the solver and
+the options) on every call. Under the caller's own `jax.jit` that is traced once; called as
+a plain function, as in a notebook, each call would trace and compile its loops anew (under
+`jax.grad` too), however often the same problem was run. `compiled_when_eager` runs such a
+call under `eqx.filter_jit` instead: arrays (`jax.Array`, NumPy arrays and scalars, and the
+tracers of `jax.grad`, `jax.jvp`, `jax.vmap`, ...) are its inputs, everything else (the
+system's functions, Python numbers and strings, the solver, the options) is part of the cache
+key, compared by equality. A second call with arrays of the same shapes and dtypes and equal other arguments
+runs the compiled program at once; a changed Python number compiles a new one, as a changed
+constant must. Compiled programs stay in memory until `jax.clear_caches()`, as with
+`jax.jit`: each configuration adds one (~600 memory mappings for the ball, in a process whose
+limit is 65,530 by default).
+
+This holds under `jax.grad`, `jax.vjp`, `jax.jacrev`, `jax.jvp`, `jax.jacfwd`, `jax.vmap` and
+their compositions, made outside `jax.jit` (`hybridjax._core.transforms.eager_at_top`): JAX
+differentiates and batches the compiled call (`jit` composes with them), and keeps what it
+compiles for the derivative or the batch, so a repeated `jax.grad` with new values compiles
+nothing. The derivatives taken at the call (forward, reverse) are part of the cache key, and
+the program is traced knowing them: under forward mode the default adjoint is replaced by one
+forward mode can go through (`hybridjax._core.transforms.adjoint_for`), and `simulate_batch` picks
+its defaults for a differentiated call.
+
+Left to the plain call: calls inside `jax.jit` (or `lax.scan`, `jax.checkpoint`, ...), which
+compile with their caller; arguments with an unhashable non-array leaf; and calls that need a
+concrete value of an array argument (a 0-d NumPy array `mode0` of `simulate_batch` with an
+`x0` to pad, read as a Python integer): tracing them raises a concretization error, and the
+call is made as a plain call.
+"""
+
+import functools
+import inspect
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+from .._core.transforms import (
+    adjoint_for,
+    compiled_call,
+    derivative_modes,
+    eager_at_top,
+    naming_the_forward_mode_fix,
+)
+from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
+
+# The errors of code that needs a concrete value where the compiled call gives it a tracer.
+_NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+                   jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)
+
+
+class _StaticScalar:
+    """A NumPy scalar kept static (part of the cache key), as the plain call saw it: code that
+    checks `isinstance(mode0, np.integer)` or calls `int(max_epochs)` gets the scalar back."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+    def __eq__(self, other):
+        return (isinstance(other, _StaticScalar) and type(other.value) is type(self.value)
+                and bool(other.value == self.value))
+
+    def __hash__(self):
+        return hash((type(self.value), self.value.item()))
+
+
+def _wrap_scalars(tree):
+    return jtu.tree_map(lambda x: _StaticScalar(x) if isinstance(x, np.generic) else x, tree)
+
+
+def _unwrap_scalars(tree):
+    return jtu.tree_map(lambda x: x.value if isinstance(x, _StaticScalar) else x, tree)
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves(tree))
+
+
+def _hashable_leaves(tree) -> bool:
+    """Every non-array leaf hashable (a cache key)."""
+    for leaf in jtu.tree_leaves(tree):
+        if not eqx.is_array(leaf):
+            try:
+                hash(leaf)
+            except TypeError:
+                return False
+    return True
+
+
+def compiled_when_eager(check_time_span: Callable) -> Callable:
+    """Decorator: `fn` called outside `jax.jit` (also under `jax.grad`, `jax.vmap`, ...) runs as
+    `eqx.filter_jit(fn)`.
+
+    `check_time_span(t0, t1, where, given)` is called at the call where t0 and t1 are known
+    (a `ValueError` there); inside the compiled call `take_time_span_check()` then says so, and
+    the program needs no check of its own. Traced t0 or t1 (a derivative or a batch over them)
+    are checked inside the program (a `T1_BEFORE_T0` status where t1 < t0). Whether they were
+    checked at the call is part of the cache key, so that a program without the check never
+    serves a call that needs it."""
+
+    def wrap(fn: Callable) -> Callable:
+        signature = inspect.signature(fn)
+
+        def traced(args, kwargs, context):
+            modes, checked = context
+            token = _TIME_SPAN_CHECKED.set(_Ticket() if checked else None)
+            try:
+                with compiled_call(modes):
+                    return fn(*_unwrap_scalars(args), **_unwrap_scalars(kwargs))
+            finally:
+                _TIME_SPAN_CHECKED.reset(token)
+
+        compiled = eqx.filter_jit(traced)
+
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            if not eager_at_top():
+                return fn(*args, **kwargs)
+            bound = signature.bind(*args, **kwargs)
+            # The state is an array whatever the caller wrote (a list of floats would otherwise
+            # be part of the key, and compile again for every initial state).
+            if isinstance(bound.arguments["x0"], (list, tuple)):
+                bound.arguments["x0"] = jnp.asarray(bound.arguments["x0"])
+            # The adjoint the derivatives at the call need, chosen here: inside the compiled
+            # program the call's own derivative traces are no longer visible.
+            modes = derivative_modes()
+            adjoint = bound.arguments.get("adjoint", signature.parameters["adjoint"].default)
+            if adjoint_for(adjoint, modes) is not adjoint:
+                bound.arguments["adjoint"] = adjoint_for(adjoint, modes)
+            call_args, call_kwargs = _wrap_scalars((bound.args, bound.kwargs))
+            if not _hashable_leaves((call_args, call_kwargs)):
+                return fn(*bound.args, **bound.kwargs)
+            t0, t1 = bound.arguments["t0"], bound.arguments["t1"]
+            checked = not _traced((t0, t1))
+            if checked:
+                check_time_span(t0, t1, fn.__name__, given=(t0, t1))
+            try:
+                # JAX differentiates the compiled call here, where a forward-mode derivative
+                # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
+                with naming_the_forward_mode_fix():
+                    return compiled(call_args, call_kwargs, (modes, checked))
+            except _NEEDS_CONCRETE:
+                pass
+            return fn(*bound.args, **bound.kwargs)
+
+        return call
+
+    return wrap

@@ -1,0 +1,302 @@
+"""Scenes: contact hybrid systems built from constraints (`hj.Scene`, `hj.contact_system`).
+
+Checked against hand derivations (the chapter's practice problem 1, the rimless wheel's gait) and
+against the hand-written examples (the two balls)."""
+
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hybridjax as hj
+from hybridjax import examples
+
+TIGHT = diffrax.PIDController(rtol=1e-11, atol=1e-11)
+G = 9.81
+WEDGE = examples.wedge_particle()
+
+
+def wedge_args(theta):
+    return {"m": jnp.asarray(1.0), "g": jnp.asarray(G), "theta": jnp.asarray(theta)}
+
+
+THETAS = (math.pi / 4, math.pi / 3, 2 * math.pi / 3, 3 * math.pi / 4)
+WEDGES = {th: hj.contact_system(WEDGE, ["free"], wedge_args(th)) for th in THETAS}
+
+
+def table(system):
+    """(modes built, achievable transitions as (kind, constraint, source, target))."""
+    modes = {m.name for m in system.modes if not m.name.startswith("unbuilt")}
+    edges = {(kind, c, src, tgt) for src, tgt, kind, c, _ in system.achievable}
+    return modes, edges
+
+
+def wedge_hand_table(theta):
+    """Practice problem 1 by hand (m = 1, gravity -g along z, plastic impacts).
+
+    J_G = (0, 1), J_H = (-sin th, cos th) (unit normals), M = I. A transition is achievable when
+    a state of its source set lies in its guard: an impact needs the other held constraints'
+    forces >= 0, approach speed > 0, impulses >= 0 and released constraints separating; a
+    lift-off needs lambda_j < 0.
+    - free -> G, free -> H: a fall onto either; always.
+    - Held forces (no curvature): in G, lambda_G = g > 0 (no lift-off); in H, lambda_H = g cos th:
+      no lift-off for th < pi/2; for th > pi/2 it is negative on all of H: H -> free (an overhang).
+    - Impact of H in G (sliding into the corner at the origin, speed v > 0 along x): holding both,
+      the impulse J^T P = -v e_x gives P_H = v / sin th > 0 and P_G = -v cot th: negative for
+      th < pi/2, so G is released, and then H's impulse leaves dq+ = v cos th (cos th, sin th),
+      z-rate v sin th cos th > 0 (G separates): G -> H. For th > pi/2, P_G > 0: G -> G+H, while
+      the release fails (z-rate < 0).
+    - Impact of G in H (sliding down H with speed u into the corner): holding both gives
+      P_H = -u cot th... negative for th < pi/2 (u > 0 the speed), so H is released: H -> G. For
+      th > pi/2, lambda_H < 0 on H: it lifts off before it can slide, so no impact from H.
+    - In G+H (th > pi/2): dq = 0, J^T lambda = (0, g): lambda_G = g, lambda_H = 0: no lift-off
+      (lambda_H = 0 is not < 0).
+    """
+    both = {("impact", "G", "free", "G"), ("impact", "H", "free", "H")}
+    if theta < math.pi / 2:
+        return {"free", "G", "H"}, both | {("impact", "H", "G", "H"), ("impact", "G", "H", "G")}
+    return {"free", "G", "H", "G+H"}, both | {("lift-off", "H", "H", "free"), ("impact", "H", "G", "G+H")}
+
+
+@pytest.mark.parametrize("theta", THETAS)
+def test_practice_problem_mode_table(theta):
+    assert table(WEDGES[theta]) == wedge_hand_table(theta)
+    text = repr(WEDGES[theta])
+    assert "contact sets built" in text and "pruned" in text
+    if theta < math.pi / 2:
+        assert "pruned set G+H" in text
+
+
+def test_args_values_union_is_reported():
+    system = hj.contact_system(WEDGE, ["free"], args_values=[wedge_args(THETAS[0]), wedge_args(THETAS[2])])
+    modes, edges = table(system)
+    m0, e0 = wedge_hand_table(THETAS[0])
+    m2, e2 = wedge_hand_table(THETAS[2])
+    assert modes == m0 | m2 and edges == e0 | e2
+    assert "only for args_values [1]" in repr(system) and "built over 2 args values" in repr(system)
+
+
+def _wedge_run(x0, mode0, theta, saveat):
+    # mode0 as an array: a Python int is a constant of the compiled program (one compile per value).
+    return hj.simulate(
+        WEDGES[math.pi / 4],
+        jnp.asarray(x0),
+        jnp.asarray(mode0),
+        0.0,
+        1.0,
+        wedge_args(theta),
+        stepsize_controller=TIGHT,
+        saveat=jnp.asarray(saveat),
+        max_epochs=8,
+    )
+
+
+def test_wedge_execution_and_contact_forces_by_hand():
+    th = math.pi / 4
+    sol = _wedge_run([-0.5, 0.2, 1.0, 0.0], 0, th, [0.1, 0.3, 0.6])
+    system = WEDGES[th]
+    names = [system.modes[int(m)].name for m in sol.epoch_modes[: int(sol.num_events) + 1]]
+    assert names == ["free", "G", "H", "G"]
+    # Fall of 0.2 onto the floor; slide at speed 1 to the corner at x = 0 (t = 0.5); up the ramp at
+    # speed cos th, back at the corner 2 cos th / (g sin th) later; then along the floor at -cos^2 th.
+    t1 = math.sqrt(2 * 0.2 / G)
+    t3 = 0.5 + 2 * math.cos(th) / (G * math.sin(th))
+    np.testing.assert_allclose(sol.event_times[:3], [t1, 0.5, t3], rtol=0, atol=1e-9)
+    v = math.cos(th) ** 2
+    np.testing.assert_allclose(sol.final_state, [-v * (1.0 - t3), 0.0, -v, 0.0], atol=1e-9)
+    assert sol.status == hj.Status.T1_REACHED
+    forces = np.asarray(system.contact_forces(sol))  # columns G, H
+    np.testing.assert_allclose(forces, [[0.0, 0.0], [G, 0.0], [0.0, G * math.cos(th)]], atol=1e-9)
+
+
+def test_unbuilt_contact_set_ends_with_a_status_naming_it():
+    # Built for theta = pi/4, run at 2 pi/3: sliding into the corner now holds both G and H, a
+    # contact set this system does not have.
+    sol = _wedge_run([-0.5, 0.0, 1.0, 0.0], 1, 2 * math.pi / 3, [0.1, 0.3, 0.6])
+    assert sol.status == hj.Status.BLOCKED
+    assert WEDGES[math.pi / 4].modes[int(sol.final_mode)].name == "unbuilt: G+H"
+    np.testing.assert_allclose(sol.final_time, 0.5, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- the balls
+
+BALL_ARGS = {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+CEILING_ARGS = {"g": jnp.asarray(9.8), "H": jnp.asarray(1.0)}
+
+
+def test_ball_scene_equals_bouncing_ball():
+    system = hj.contact_system(examples.ball_scene(), ["free"], BALL_ARGS)
+    assert [m.name for m in system.modes] == ["free"] and len(system.transitions) == 1
+    x0 = jnp.array([1.0, 0.5])
+    a = hj.simulate(system, x0, "free", 0.0, 2.5, BALL_ARGS, stepsize_controller=TIGHT)
+    b = hj.simulate(examples.bouncing_ball(), x0, "flight", 0.0, 2.5, BALL_ARGS, stepsize_controller=TIGHT)
+    n = int(b.num_events)
+    assert int(a.num_events) == n > 3
+    np.testing.assert_allclose(a.event_times[:n], b.event_times[:n], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.states_after[:n], b.states_after[:n], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.final_state, b.final_state, rtol=0, atol=1e-10)
+
+
+def test_ceiling_scene_equals_ceiling_ball():
+    system = hj.contact_system(examples.ceiling_scene(), ["free"], CEILING_ARGS)
+    assert [m.name for m in system.modes] == ["free", "ceiling"]
+    x0 = jnp.array([0.0, 6.0])
+    a = hj.simulate(system, x0, "free", 0.0, 1.0, CEILING_ARGS, stepsize_controller=TIGHT)
+    b = hj.simulate(examples.ceiling_ball(), x0, "flight", 0.0, 1.0, CEILING_ARGS, stepsize_controller=TIGHT)
+    assert int(a.num_events) == int(b.num_events) == 2
+    np.testing.assert_array_equal(a.epoch_modes[:3], b.epoch_modes[:3])  # free, ceiling (0 s), free
+    np.testing.assert_allclose(a.event_times[:2], b.event_times[:2], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.final_state, b.final_state, rtol=0, atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- the rimless wheel
+
+WHEEL_ARGS = {"alpha": 0.3, "gamma": 0.08, "g": 1.0, "l": 1.0, "m": 1.0}
+INERTIA = 0.1
+
+
+def test_rimless_wheel_gait_by_hand():
+    scene, relabel = examples.rimless_wheel_scene(INERTIA)
+    # Speeds up to 0.7: the foot's force m (g cos - l omega^2) stays positive, so the wheel never
+    # leaves the ground and the build keeps the stance set alone.
+    scene = type(scene)(
+        scene.dim,
+        scene.mass,
+        scene.forces,
+        scene.constraints,
+        q_range=scene.q_range,
+        dq_range=(-0.7, 0.7),
+        names=scene.names,
+    )
+    args = {k: jnp.asarray(v) for k, v in WHEEL_ARGS.items()}
+    system = hj.contact_system(scene, ["spoke0"], args, relabels=[relabel])
+    assert [m.name for m in system.modes][:1] == ["spoke0"]
+    step = [k for k, tr in enumerate(system.transitions) if tr.name == "impact spoke1: spoke0 -> spoke0"]
+    assert len(step) == 1
+    ref = examples.rimless_wheel_scene_closed_form(0.3, 0.08, 1.0, 1.0, INERTIA)
+
+    @jax.jit
+    def P(x):
+        sol = hj.simulate(system, x, 0, 0.0, 10.0, args, stepsize_controller=TIGHT, max_epochs=2)
+        return sol.states_after[0], sol.transitions[0]
+
+    x_star = jnp.asarray(ref["state"])
+    after, k = P(x_star)
+    assert int(k) == step[0]
+    np.testing.assert_allclose(after, x_star, atol=1e-9)  # the hand fixed point is a fixed point
+    # The return map's multipliers by central differences: c^2 and zeros (the plastic, sticking
+    # impact removes every direction off the stance manifold, the section the flow's direction).
+    h = 1e-5
+    cols = [(P(x_star + h * e)[0] - P(x_star - h * e)[0]) / (2 * h) for e in jnp.eye(6)]
+    mult = np.sort(np.abs(np.linalg.eigvals(np.stack(cols, axis=1))))[::-1]
+    # Central differences of a map with event times: O(h^2) plus rounding / h, about 1e-8.
+    np.testing.assert_allclose(mult[0], ref["multiplier"], atol=1e-6)
+    # The zero multipliers form a Jordan block (nilpotent): an error d in the matrix moves them by
+    # about sqrt(d), 1e-4.
+    np.testing.assert_allclose(mult[1:], 0.0, atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- definitions
+
+
+def test_definition_errors_name_the_constraint():
+    floor = hj.Constraint("floor", lambda t, q, a: q[0])
+    with pytest.raises(ValueError, match="duplicate constraint name 'floor'"):
+        hj.Scene(1, lambda q, a: jnp.eye(1), lambda t, q, dq, a: q, [floor, floor])
+    with pytest.raises(ValueError, match="'pin'.*no restitution"):
+        hj.Constraint("pin", lambda t, q, a: q[0], kind="bilateral", restitution=0.5)
+    with pytest.raises(ValueError, match="'floor'.*restitution"):
+        hj.Constraint("floor", lambda t, q, a: q[0], restitution=1.5)
+    with pytest.raises(ValueError, match="'floor'.*kind"):
+        hj.Constraint("floor", lambda t, q, a: q[0], kind="sometimes")
+    bad = hj.Scene(
+        2, lambda q, a: jnp.eye(2), lambda t, q, dq, a: q, [hj.Constraint("wall", lambda t, q, a: q)]
+    )
+    with pytest.raises(ValueError, match="Constraint 'wall'.*shape"):
+        hj.contact_system(bad, ["free"])
+    with pytest.raises(ValueError, match="Unknown constraint 'roof'"):
+        hj.contact_system(examples.ball_scene(), [["roof"]], BALL_ARGS)
+
+
+def test_redundant_contacts_error_names_them():
+    scene = hj.Scene(
+        1,
+        lambda q, a: jnp.eye(1),
+        lambda t, q, dq, a: -9.8 + 0 * q,
+        [hj.Constraint("left", lambda t, q, a: q[0]), hj.Constraint("right", lambda t, q, a: q[0])],
+        q_range=(0.0, 1.0),
+        dq_range=(-1.0, 1.0),
+    )
+    with pytest.raises(ValueError, match=r"dependent constraints \['left', 'right'\]"):
+        hj.contact_system(scene, [["left", "right"]])
+
+
+# ----------------------------------------------------------------------------- a rod, two contacts
+
+ROD_ARGS = {"m": jnp.asarray(1.0), "g": jnp.asarray(G), "L": jnp.asarray(1.0)}
+
+
+def rod_by_hand(x0, z0, phi0, L=1.0, g=G):
+    """The rod dropped from rest, computed without hybridjax: free fall; the plastic impact of
+    the left end, by hand; pivoting and sliding on it (frictionless: x stays), the reduced
+    equation of phi integrated by scipy until the right end lands (phi = 0); there, holding both
+    ends stops z and phi, and both impulses are positive (checked), so it rests."""
+    from scipy.integrate import solve_ivp
+
+    m, I, h = 1.0, L**2 / 12, L / 2
+    t1 = math.sqrt(2 * (z0 - h * math.sin(phi0)) / g)
+    vz = -g * t1
+    # Left end: J = (0, 1, -h cos phi); P = -J dq / (J M^-1 J^T).
+    c = h * math.cos(phi0)
+    P = -vz / (1 / m + c * c / I)
+    vz, w = vz + P / m, -c * P / I
+
+    # Pivoting on the left end: z = h sin phi; Lagrange's equation in phi.
+    def rhs(t, y):
+        phi, w = y
+        a = m * h * h * math.cos(phi) ** 2 + I
+        return [w, (m * h * h * math.cos(phi) * math.sin(phi) * w * w - m * g * h * math.cos(phi)) / a]
+
+    def lands(t, y):
+        return y[0]
+
+    lands.terminal, lands.direction = True, -1
+
+    def force(y):  # lambda_left = m (z'' + g), z'' = h (cos phi phi'' - sin phi phi'^2)
+        phi, w = y
+        return m * (h * (math.cos(phi) * rhs(0, y)[1] - math.sin(phi) * w * w) + g)
+
+    sol = solve_ivp(rhs, (0, 5), [phi0, w], events=lands, rtol=1e-12, atol=1e-12, dense_output=True)
+    t2 = t1 + sol.t_events[0][0]
+    w2 = sol.y_events[0][0][1]
+    forces = [force(sol.sol(t)) for t in np.linspace(0, sol.t[-1], 50)]
+    # Both ends held at phi = 0: P_left + P_right = -m h w2, h (P_right - P_left) = -I w2.
+    P_left = 0.5 * (-m * h * w2 + I * w2 / h)
+    P_right = 0.5 * (-m * h * w2 - I * w2 / h)
+    return dict(t=(t1, t2), w_before=w2, min_force=min(forces), impulses=(P_left, P_right))
+
+
+def test_rod_lands_on_one_end_then_the_other_and_rests():
+    system = hj.contact_system(examples.rod_scene(), ["free"], ROD_ARGS)
+    ref = rod_by_hand(0.1, 0.5, 0.3)
+    assert ref["min_force"] > 0 and min(ref["impulses"]) > 0  # no lift-off, no release
+    sol = hj.simulate(
+        system,
+        jnp.array([0.1, 0.5, 0.3, 0.0, 0.0, 0.0]),
+        "free",
+        0.0,
+        1.0,
+        ROD_ARGS,
+        stepsize_controller=TIGHT,
+        saveat=jnp.array([0.9]),
+        max_epochs=8,
+    )
+    names = [system.modes[int(m)].name for m in sol.epoch_modes[: int(sol.num_events) + 1]]
+    assert names == ["free", "left", "left+right"]
+    np.testing.assert_allclose(sol.event_times[:2], ref["t"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.states_before[1, 5], ref["w_before"], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sol.final_state, [0.1, 0, 0, 0, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(system.contact_forces(sol), [[G / 2, G / 2]], atol=1e-9)

@@ -1,0 +1,44 @@
+"""Small dense linear algebra as array operations (no LAPACK call), against numpy's LAPACK."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hybridjax._core.small_linalg import least_squares, rank_ratio, solve
+
+RNG = np.random.default_rng(0)
+
+
+def test_solve_equals_lapack_and_pivots():
+    for n in (1, 2, 5, 9):
+        a, b, B = RNG.normal(size=(n, n)), RNG.normal(size=n), RNG.normal(size=(n, 3))
+        np.testing.assert_allclose(solve(a, b), np.linalg.solve(a, b), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(solve(a, B), np.linalg.solve(a, B), rtol=1e-12, atol=1e-12)
+    # a zero first pivot needs the row exchange
+    np.testing.assert_allclose(solve(jnp.array([[0.0, 1.0], [1.0, 0.0]]), jnp.array([2.0, 3.0])), [3.0, 2.0])
+
+
+def test_solve_derivative_by_the_inverse():
+    # d(a^-1 b)/da_ij = -(a^-1)_ki x_j  =>  grad of sum(x) = -(a^-T 1) x^T
+    a, b = jnp.asarray(RNG.normal(size=(4, 4))), jnp.asarray(RNG.normal(size=4))
+    g = jax.grad(lambda a: solve(a, b).sum())(a)
+    x = np.linalg.solve(a, b)
+    np.testing.assert_allclose(g, -np.outer(np.linalg.solve(np.asarray(a).T, np.ones(4)), x), rtol=1e-10)
+
+
+def test_rank_ratio_is_zero_exactly_for_dependent_rows():
+    J = RNG.normal(size=(3, 5))
+    assert float(rank_ratio(jnp.eye(4))) == 1.0
+    assert 1e-4 < float(rank_ratio(J @ J.T)) <= 1.0
+    Jd = np.vstack([J[:2], 2.0 * J[0] - J[1]])  # the third row a combination of the others
+    assert float(rank_ratio(Jd @ Jd.T)) < 1e-13
+
+
+def test_least_squares_full_rank_and_least_norm():
+    a, b = RNG.normal(size=(6, 3)), RNG.normal(size=6)
+    np.testing.assert_allclose(least_squares(a, b), np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-9)
+    # a repeated column: the least-norm solution splits its weight equally (numpy's SVD lstsq)
+    ad = np.hstack([a, a[:, :1]])
+    # the damped normal equations meet it to rounding over the damping in the direction a does
+    # not see: eps / 1e-13, about 2e-3
+    np.testing.assert_allclose(least_squares(ad, b), np.linalg.lstsq(ad, b, rcond=None)[0], atol=1e-3)
