@@ -8,13 +8,16 @@ B / A (the machine may be loaded by other work: alternating pairs see the same l
 problem and entry point: `trace + lower + compile` time, and the best of `--repeat` runs of the
 compiled program. Entry points: one execution (`jax.jit(simulate)`), `jax.jit(jax.vmap(simulate))`
 and `jax.jit(simulate_batch)` over `--n` executions (x0 sampled as in problems.py), and the
-reverse-mode gradient (`jax.grad` of the sum of the final states) of one execution and of the
-batch. Float64, Tsit5, PIDController(rtol = atol = 1e-8), XLA's default flags. Also the lines of
-the engines and their rules in each tree (the modules of `hybridjax/_engines`, `_rules` and
-`_step`, or, in a tree with the flat layout, `_loop`, `_batched`, `_events`, `_rules`,
+reverse-mode gradient (`jax.grad` of the sum of the final states) of one execution, of
+`jax.vmap(simulate)` and of `simulate_batch`. `--env-b NAME=VALUE` sets an environment variable
+in version B's processes alone (for one tree run both ways by a private switch read from the
+environment). Float64, Tsit5, PIDController(rtol = atol = 1e-8), XLA's default flags. Also the
+lines of the engines and their rules in each tree (the modules of `hybridjax/_engines`, `_rules`
+and `_step`, or, in a tree with the flat layout, `_loop`, `_batched`, `_events`, `_rules`,
 `_fast_rk` and `_zeno`).
 
     python benchmarks/engine_ab.py --a /path/to/old/tree --b .   # writes results/engine_ab.json
+    python benchmarks/engine_ab.py --a /path/to/old/tree --b . --entries "simulate,grad vmap(simulate)"
 """
 
 import argparse
@@ -31,7 +34,8 @@ ENGINE_PACKAGES = ("_engines", "_rules", "_step")
 PROBLEMS = ("ball", "vdp_relay", "thermostat")
 
 
-ENTRIES = ("simulate", "vmap(simulate)", "simulate_batch", "grad simulate", "grad simulate_batch")
+ENTRIES = ("simulate", "vmap(simulate)", "simulate_batch", "grad simulate", "grad vmap(simulate)",
+           "grad simulate_batch")
 
 
 def one(n: int, repeat: int, entries) -> dict:
@@ -66,6 +70,7 @@ def one(n: int, repeat: int, entries) -> dict:
             "vmap(simulate)": (jax.jit(jax.vmap(final)), x0),
             "simulate_batch": (jax.jit(batch), x0),
             "grad simulate": (jax.jit(jax.grad(lambda x, f=final: f(x).sum())), x0[0]),
+            "grad vmap(simulate)": (jax.jit(jax.grad(lambda X, f=final: jax.vmap(f)(X).sum())), x0),
             "grad simulate_batch": (jax.jit(jax.grad(lambda X, f=batch: f(X).sum())), x0),
         }
         res = {}
@@ -105,8 +110,17 @@ def _tree_name(root: pathlib.Path) -> str:
     return head + (" +changes" if dirty else "")
 
 
-def summary(a, roots, runs) -> dict:
-    """Best of the completed rounds per version, and the ratio B / A."""
+def _env_b(a) -> dict:
+    """`--env-b NAME=VALUE` options as a dict."""
+    pairs = [item.split("=", 1) for item in a.env_b]
+    if any(len(p) != 2 or not p[0] for p in pairs):
+        raise SystemExit(f"--env-b: expected NAME=VALUE, got {a.env_b}")
+    return dict(pairs)
+
+
+def summary(a, roots, runs, loads) -> dict:
+    """Best of the completed rounds per version, and the ratio B / A; `loads` the machine's
+    1-minute load average as each process started."""
     table = {}
     for name in PROBLEMS:
         for key in runs["A"][0][name]:
@@ -117,12 +131,13 @@ def summary(a, roots, runs) -> dict:
                 )
     return dict(
         a=_tree_name(roots["A"]),
-        b=_tree_name(roots["B"]),
+        b=_tree_name(roots["B"]) + "".join(f" {k}={v}" for k, v in _env_b(a).items()),
         rounds=len(runs["B"]),
         repeat=a.repeat,
         n=a.n,
         lines=dict(A=lines(roots["A"]), B=lines(roots["B"])),
         best=table,
+        load=loads,
         runs=runs,
     )
 
@@ -135,6 +150,8 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--n", type=int, default=100)
     ap.add_argument("--entries", default=",".join(ENTRIES), help="comma-separated, of " + ", ".join(ENTRIES))
+    ap.add_argument("--env-b", action="append", default=[], metavar="NAME=VALUE",
+                    help="an environment variable for version B's processes (repeatable)")
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ab.json"))
     a = ap.parse_args()
@@ -143,9 +160,10 @@ def main():
         return
     roots = {"A": pathlib.Path(a.a).resolve(), "B": pathlib.Path(a.b).resolve()}
     runs: dict = {"A": [], "B": []}
+    loads: list = []
     for r in range(a.rounds):
         for v, root in roots.items():
-            env = dict(os.environ, PYTHONPATH=str(root))
+            env = dict(os.environ, PYTHONPATH=str(root), **(_env_b(a) if v == "B" else {}))
             cmd = [
                 sys.executable,
                 __file__,
@@ -159,16 +177,18 @@ def main():
                 "--entries",
                 a.entries,
             ]
+            loads.append(os.getloadavg()[0])
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=root)
             runs[v].append(json.loads(proc.stdout.strip().splitlines()[-1]))
             print(f"round {r + 1}/{a.rounds}, {v} done", file=sys.stderr, flush=True)
-        result = summary(a, roots, runs)  # written after every round: a long run can be cut short
+        result = summary(a, roots, runs, loads)  # written after every round: a long run can be cut short
         pathlib.Path(a.out).parent.mkdir(parents=True, exist_ok=True)
         pathlib.Path(a.out).write_text(json.dumps(result, indent=1))
     table = result["best"]
     print(f"{'problem | entry point | measure':60s} {'A':>9s} {'B':>9s} {'B/A':>6s}")
     for k, v in table.items():
         print(f"{k:60s} {v['A']:9.4f} {v['B']:9.4f} {v['ratio']:6.3f}")
+    print(f"load average as each process started: {min(loads):.1f} to {max(loads):.1f} ({os.cpu_count()} cores)")
     print("lines of engines + rules:", result["lines"]["A"]["total"], "->", result["lines"]["B"]["total"])
 
 
