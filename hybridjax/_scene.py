@@ -303,16 +303,73 @@ def constraint_kinematics(fns, t, q, dq, args):
     return gap(t, q), J, adot, bias
 
 
+def _cholesky(A) -> list:
+    """The lower Cholesky factor of a small symmetric positive definite matrix, as rows of
+    scalars, unrolled into elementwise operations.
+
+    A contact system's matrices are a few rows wide and solved once per lane and flow stage:
+    as elementwise operations they fuse across the lanes of a batch, where a LAPACK call per
+    lane (`jnp.linalg.solve`) costs far more than the arithmetic and, with OpenBLAS's threads
+    on a busy machine, can stall a batch a hundredfold. A matrix that is not positive definite
+    (dependent constraints) gives a non-finite factor."""
+    s = A.shape[0]
+    L = [[None] * s for _ in range(s)]
+    for j in range(s):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), jnp.zeros((), A.dtype))
+        L[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, s):
+            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros((), A.dtype))
+            L[i][j] = off / L[j][j]
+    return L
+
+
+def _spd_solve(A, B):
+    """Solve $A X = B$, $A$ small symmetric positive definite, $B$ of shape (s,) or (s, r).
+
+    The factor is computed without gradients and the derivatives come from `custom_linear_solve`
+    (as `jnp.linalg.solve` does with its LU factors): a derivative of the solution is one more
+    pair of substitutions with the same factor, so the nested derivatives of a contact flow (the
+    start test's Lie derivatives) do not differentiate the factorisation itself."""
+    A = 0.5 * (A + A.T)
+    L = _cholesky(jax.lax.stop_gradient(A))
+    return jax.lax.custom_linear_solve(
+        lambda x: A @ x, B, solve=lambda _, b: _cho_substitute(L, b), symmetric=True
+    )
+
+
+def _cho_substitute(L: list, B):
+    """Solve $L L^\top X = B$ ($B$ of shape (s,) or (s, r)) by substitution, row by row."""
+    s = len(L)
+    y = []
+    for i in range(s):
+        y.append((B[i] - sum((L[i][k] * y[k] for k in range(i)), jnp.zeros_like(B[i]))) / L[i][i])
+    x = [None] * s
+    for i in reversed(range(s)):
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, s)), jnp.zeros_like(B[i]))) / L[i][i]
+    return jnp.stack(x)
+
+
 def kkt_solve(M, top, J, bottom, mask, least_norm=False):
     r"""Solve $M u - J^\top \mathrm{diag}(m) \mu = $ `top`, $m_i (J u)_i + (1 - m_i) \mu_i = m_i$
     `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$). Least-norm (pseudo-inverse) for
-    dependent rows."""
+    dependent rows.
+
+    Otherwise through the Schur complement ($M$ symmetric positive definite):
+    $u = M^{-1}(\text{top} + J_m^\top \mu)$ with
+    $(J_m M^{-1} J_m^\top + \mathrm{diag}(1 - m)) \mu = m \odot \text{bottom} - J_m M^{-1} \text{top}$,
+    $J_m = \mathrm{diag}(m) J$, both solved by `_spd_solve`."""
     n = M.shape[0]
     Jm = mask[:, None] * J
-    K = jnp.block([[M, -Jm.T], [Jm, jnp.diag(1.0 - mask)]])
-    rhs = jnp.concatenate([top, mask * bottom])
-    sol = jnp.linalg.pinv(K, rtol=1e-10) @ rhs if least_norm else jnp.linalg.solve(K, rhs)
-    return sol[:n], sol[n:]
+    if least_norm:
+        K = jnp.block([[M, -Jm.T], [Jm, jnp.diag(1.0 - mask)]])
+        sol = jnp.linalg.pinv(K, rtol=1e-10) @ jnp.concatenate([top, mask * bottom])
+        return sol[:n], sol[n:]
+    if Jm.shape[0] == 0:
+        return _spd_solve(M, top), jnp.zeros((0,), top.dtype)
+    X = _spd_solve(M, jnp.concatenate([top[:, None], Jm.T], axis=1))
+    v, W = X[:, 0], X[:, 1:]  # M^-1 top, M^-1 J_m^T
+    mu = _spd_solve(Jm @ W + jnp.diag(1.0 - mask), mask * bottom - Jm @ v)
+    return v + W @ mu, mu
 
 
 def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False):
@@ -321,7 +378,7 @@ def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False)
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
     if not fns:
-        return jnp.linalg.solve(M, f), jnp.zeros((0,), q.dtype)
+        return _spd_solve(M, f), jnp.zeros((0,), q.dtype)
     _, J, _, bias = constraint_kinematics(fns, t, q, dq, args)
     return kkt_solve(M, f, J, -bias, mask, least_norm)
 
@@ -339,15 +396,18 @@ def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
 
 
 def independence(scene, fns, held, t, q, args):
-    r"""$\sigma_{\min} / \sigma_{\max}$ of $J M^{-1} J^\top$ on the held rows (1 where none):
-    0 for dependent constraints."""
+    r"""$\min_j d_j / \max_j G_{jj}$, $d_j$ the pivots ($L_{jj}^2$) of the Cholesky factor of
+    the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
+    NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
+    pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
+    as `kkt_solve` (no LAPACK call per lane)."""
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
-    G = J @ jnp.linalg.solve(M, J.T)
+    G = J @ _spd_solve(M, J.T)
     G = held[:, None] * held[None, :] * G + jnp.diag(1.0 - held)
-    G = 0.5 * (G + G.T)
-    w = jnp.linalg.eigvalsh(G)
-    return w[0] / w[-1]
+    L = _cholesky(0.5 * (G + G.T))
+    pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
+    return jnp.min(pivots) / jnp.max(jnp.diag(G))
 
 
 _INDEPENDENT = 1e-9  # sigma_min / sigma_max of the held Gram matrix below this: dependent
