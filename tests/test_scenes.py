@@ -208,6 +208,20 @@ def test_rimless_wheel_gait_by_hand():
     np.testing.assert_allclose(mult[1:], 0.0, atol=1e-3)
 
 
+def test_rimless_wheel_gait_by_periodic_orbit():
+    system, args, step, ref = wheel()
+    orbit = hj.periodic_orbit(system, step[0], ref["state"] * 1.02, args, max_epochs=4)
+    np.testing.assert_allclose(orbit.state, ref["state"], rtol=0, atol=1e-10)
+    # The monodromy matrix's multipliers, by AD and by saltation matrices: 1 (the flow's
+    # direction), c^2 (the hand return map's) and zeros (the plastic, sticking impact).
+    for mult in (orbit.multipliers_ad, orbit.multipliers_saltation):
+        mult = np.abs(mult)
+        np.testing.assert_allclose(mult[:2], [1.0, ref["multiplier"]], rtol=0, atol=1e-9)
+        # The zeros form a Jordan block: a rounding error d in the matrix moves them by about
+        # sqrt(d) (1e-8 at d = 1e-16).
+        np.testing.assert_allclose(mult[2:], 0.0, atol=1e-6)
+
+
 # ----------------------------------------------------------------------------- definitions
 
 
