@@ -3,6 +3,7 @@
 Checked against hand derivations (the chapter's practice problem 1, the rimless wheel's gait) and
 against the hand-written examples (the two balls)."""
 
+import functools
 import math
 
 import diffrax
@@ -158,7 +159,10 @@ WHEEL_ARGS = {"alpha": 0.3, "gamma": 0.08, "g": 1.0, "l": 1.0, "m": 1.0}
 INERTIA = 0.1
 
 
-def test_rimless_wheel_gait_by_hand():
+@functools.cache
+def wheel():
+    """The rimless wheel's system (built once for the tests that use it), its args, the index of
+    its step transition and the hand-derived gait."""
     scene, relabel = examples.rimless_wheel_scene(INERTIA)
     # Speeds up to 0.7: the foot's force m (g cos - l omega^2) stays positive, so the wheel never
     # leaves the ground and the build keeps the stance set alone.
@@ -173,10 +177,15 @@ def test_rimless_wheel_gait_by_hand():
     )
     args = {k: jnp.asarray(v) for k, v in WHEEL_ARGS.items()}
     system = hj.contact_system(scene, ["spoke0"], args, relabels=[relabel])
-    assert [m.name for m in system.modes][:1] == ["spoke0"]
     step = [k for k, tr in enumerate(system.transitions) if tr.name == "impact spoke1: spoke0 -> spoke0"]
-    assert len(step) == 1
     ref = examples.rimless_wheel_scene_closed_form(0.3, 0.08, 1.0, 1.0, INERTIA)
+    return system, args, step, ref
+
+
+def test_rimless_wheel_gait_by_hand():
+    system, args, step, ref = wheel()
+    assert [m.name for m in system.modes][:1] == ["spoke0"]
+    assert len(step) == 1
 
     @jax.jit
     def P(x):
@@ -197,6 +206,20 @@ def test_rimless_wheel_gait_by_hand():
     # The zero multipliers form a Jordan block (nilpotent): an error d in the matrix moves them by
     # about sqrt(d), 1e-4.
     np.testing.assert_allclose(mult[1:], 0.0, atol=1e-3)
+
+
+def test_rimless_wheel_gait_by_periodic_orbit():
+    system, args, step, ref = wheel()
+    orbit = hj.periodic_orbit(system, step[0], ref["state"] * 1.02, args, max_epochs=4)
+    np.testing.assert_allclose(orbit.state, ref["state"], rtol=0, atol=1e-10)
+    # The monodromy matrix's multipliers, by AD and by saltation matrices: 1 (the flow's
+    # direction), c^2 (the hand return map's) and zeros (the plastic, sticking impact).
+    for mult in (orbit.multipliers_ad, orbit.multipliers_saltation):
+        mult = np.abs(mult)
+        np.testing.assert_allclose(mult[:2], [1.0, ref["multiplier"]], rtol=0, atol=1e-9)
+        # The zeros form a Jordan block: a rounding error d in the matrix moves them by about
+        # sqrt(d) (1e-8 at d = 1e-16).
+        np.testing.assert_allclose(mult[2:], 0.0, atol=1e-6)
 
 
 # ----------------------------------------------------------------------------- definitions
@@ -300,3 +323,45 @@ def test_rod_lands_on_one_end_then_the_other_and_rests():
     np.testing.assert_allclose(sol.states_before[1, 5], ref["w_before"], rtol=0, atol=1e-8)
     np.testing.assert_allclose(sol.final_state, [0.1, 0, 0, 0, 0, 0], atol=1e-9)
     np.testing.assert_allclose(system.contact_forces(sol), [[G / 2, G / 2]], atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- the small solves
+
+
+def test_kkt_solve_against_the_dense_system():
+    from hybridjax._scenes.scene import kkt_solve
+
+    rng = np.random.default_rng(0)
+    n, m = 4, 3
+    A = rng.normal(size=(n, n))
+    M = A @ A.T + n * np.eye(n)
+    J, top, bottom = rng.normal(size=(m, n)), rng.normal(size=n), rng.normal(size=m)
+    mask = np.array([1.0, 0.0, 1.0])
+    # The KKT system as one dense matrix, solved by numpy: the released row has mu = 0.
+    Jm = mask[:, None] * J
+    dense = np.block([[M, -Jm.T], [Jm, np.diag(1.0 - mask)]])
+    ref = np.linalg.solve(dense, np.concatenate([top, mask * bottom]))
+    u, mu = kkt_solve(*map(jnp.asarray, (M, top, J, bottom, mask)))
+    np.testing.assert_allclose(np.concatenate([u, mu]), ref, rtol=0, atol=1e-13)
+    assert mu[1] == 0.0
+    # Dependent held rows: no solution, and the solve says so with non-finite values.
+    J2 = jnp.asarray([[1.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0]])
+    u, mu = kkt_solve(jnp.asarray(M), jnp.asarray(top), J2, jnp.zeros(2), jnp.ones(2))
+    assert not np.all(np.isfinite(np.concatenate([u, mu])))
+
+
+def test_independence_bounds_the_gram_eigenvalue_ratio():
+    from hybridjax._scenes.scene import independence
+
+    scene = examples.polygon_particle(3)
+    fns = tuple(c.fn for c in scene.constraints)
+    q, args = jnp.asarray([0.1, -0.2]), {"r": jnp.asarray(1.0)}
+    # Walls 0 and 1, unit normals 120 degrees apart, M = I: G = [[1, c], [c, 1]], c = cos(120),
+    # eigenvalues 1 -+ c; the Cholesky pivots 1 and 1 - c^2, so the ratio is 1 - c^2 = 3/4.
+    held = jnp.asarray([1.0, 1.0, 0.0])
+    np.testing.assert_allclose(independence(scene, fns, held, 0.0, q, args), 0.75, rtol=1e-14)
+    assert 0.75 >= (1 - 0.5) / (1 + 0.5)  # not below lambda_min / lambda_max
+    # One wall twice: dependent.
+    same = (fns[0], fns[0])
+    ratio = independence(scene, same, jnp.ones(2), 0.0, q, args)
+    assert not ratio > 1e-9

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hybridjax._core.small_linalg import least_squares, rank_ratio, solve
+from hybridjax._core.small_linalg import cholesky, least_squares, solve, spd_solve
 
 RNG = np.random.default_rng(0)
 
@@ -26,12 +26,19 @@ def test_solve_derivative_by_the_inverse():
     np.testing.assert_allclose(g, -np.outer(np.linalg.solve(np.asarray(a).T, np.ones(4)), x), rtol=1e-10)
 
 
-def test_rank_ratio_is_zero_exactly_for_dependent_rows():
+def test_cholesky_and_spd_solve_equal_lapack_and_a_dependent_gram_matrix_has_a_zero_pivot():
     J = RNG.normal(size=(3, 5))
-    assert float(rank_ratio(jnp.eye(4))) == 1.0
-    assert 1e-4 < float(rank_ratio(J @ J.T)) <= 1.0
+    G = J @ J.T
+    L = np.array([[float(v) if v is not None else 0.0 for v in row] for row in cholesky(jnp.asarray(G))])
+    np.testing.assert_allclose(L, np.linalg.cholesky(G), rtol=1e-12)
+    B = RNG.normal(size=(3, 2))
+    np.testing.assert_allclose(spd_solve(jnp.asarray(G), jnp.asarray(B)), np.linalg.solve(G, B), rtol=1e-10)
+    # spd_solve's derivative comes from custom_linear_solve: d(G^-1 b)/db = G^-1
+    jac = jax.jacfwd(lambda b: spd_solve(jnp.asarray(G), b))(jnp.asarray(B[:, 0]))
+    np.testing.assert_allclose(jac, np.linalg.inv(G), rtol=1e-9)
     Jd = np.vstack([J[:2], 2.0 * J[0] - J[1]])  # the third row a combination of the others
-    assert float(rank_ratio(Jd @ Jd.T)) < 1e-13
+    last = cholesky(jnp.asarray(Jd @ Jd.T))[2][2]
+    assert not np.isfinite(float(last)) or float(last) ** 2 < 1e-12 * float(np.max(np.diag(Jd @ Jd.T)))
 
 
 def test_least_squares_full_rank_and_least_norm():

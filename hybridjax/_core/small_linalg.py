@@ -10,6 +10,7 @@ unrolled over their static size is cheap, fuses with the work around it, and is
 differentiable like any other array code.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -38,25 +39,50 @@ def solve(a: Float[Array, "n n"], b: Float[Array, "n ..."]) -> Float[Array, "n .
     return out[:, 0] if vector else out
 
 
-def rank_ratio(g: Float[Array, "n n"]) -> Float[Array, ""]:
-    """For a symmetric positive semi-definite `g`: the smallest pivot of its Cholesky
-    factorisation with diagonal pivoting (the largest remaining diagonal first) over the largest
-    diagonal entry. 1 for a multiple of the identity, 0 (to rounding) where `g` is singular:
-    every pivot after the first `rank(g)` is the rounding of a zero Schur complement."""
-    n = g.shape[-1]
-    scale = jnp.max(jnp.diagonal(g))
-    used = jnp.zeros((n,), bool)
-    smallest = scale
-    for _ in range(n):
-        d = jnp.where(used, -jnp.inf, jnp.diagonal(g))
-        p = jnp.argmax(d)
-        pivot = d[p]
-        smallest = jnp.minimum(smallest, pivot)
-        col = g[:, p]
-        safe = jnp.where(pivot > 0, pivot, 1.0)
-        g = g - jnp.where(pivot > 0, jnp.outer(col, col) / safe, 0.0)
-        used = used.at[p].set(True)
-    return jnp.maximum(smallest, 0.0) / jnp.where(scale > 0, scale, 1.0)
+def cholesky(A) -> list:
+    """The lower Cholesky factor of a small symmetric positive definite matrix, as rows of
+    scalars, unrolled into elementwise operations.
+
+    A contact system's matrices are a few rows wide and solved once per lane and flow stage:
+    as elementwise operations they fuse across the lanes of a batch, where a LAPACK call per
+    lane (`jnp.linalg.solve`) costs far more than the arithmetic and, with OpenBLAS's threads
+    on a busy machine, can stall a batch a hundredfold. A matrix that is not positive definite
+    (dependent constraints) gives a non-finite factor."""
+    s = A.shape[0]
+    L = [[None] * s for _ in range(s)]
+    for j in range(s):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), jnp.zeros((), A.dtype))
+        L[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, s):
+            off = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), jnp.zeros((), A.dtype))
+            L[i][j] = off / L[j][j]
+    return L
+
+
+def spd_solve(A, B):
+    """Solve $A X = B$, $A$ small symmetric positive definite, $B$ of shape (s,) or (s, r).
+
+    The factor is computed without gradients and the derivatives come from `custom_linear_solve`
+    (as `jnp.linalg.solve` does with its LU factors): a derivative of the solution is one more
+    pair of substitutions with the same factor, so the nested derivatives of a contact flow (the
+    start test's Lie derivatives) do not differentiate the factorisation itself."""
+    A = 0.5 * (A + A.T)
+    L = cholesky(jax.lax.stop_gradient(A))
+    return jax.lax.custom_linear_solve(
+        lambda x: A @ x, B, solve=lambda _, b: _cho_substitute(L, b), symmetric=True
+    )
+
+
+def _cho_substitute(L: list, B):
+    """Solve $L L^\top X = B$ ($B$ of shape (s,) or (s, r)) by substitution, row by row."""
+    s = len(L)
+    y = []
+    for i in range(s):
+        y.append((B[i] - sum((L[i][k] * y[k] for k in range(i)), jnp.zeros_like(B[i]))) / L[i][i])
+    x = [None] * s
+    for i in reversed(range(s)):
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, s)), jnp.zeros_like(B[i]))) / L[i][i]
+    return jnp.stack(x)
 
 
 def least_squares(

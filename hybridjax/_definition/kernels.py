@@ -218,17 +218,23 @@ class Kernels:
             f = lambda t_, y_: self.mode_flow(src)(t_, y_, aa)  # noqa: E731
 
             def lie(h):
-                return lambda t_, y_: jax.jvp(h, (t_, y_), (jnp.ones_like(t_), f(t_, y_)))[1]
+                # h(t, y) -> (L_j, (L_0, ..., L_{j-1})): L_{j+1} is the derivative of L_j
+                # along the flow; the lower orders ride along as jvp's aux, undifferentiated,
+                # so that L0..L3 come from one nested jvp (three separate ones, for L1, L2
+                # and L3, would trace and compile the nested flow derivatives three times).
+                def up(t_, y_):
+                    top, dtop, lower = jax.jvp(h, (t_, y_), (jnp.ones_like(t_), f(t_, y_)), has_aux=True)
+                    return dtop, (*lower, top)
 
-            L1f = lie(g)
-            L2f = lie(L1f)
-            L3f = lie(L2f)
+                return up
+
+            L3, (L0, L1, L2) = lie(lie(lie(lambda t_, y_: (g(t_, y_), ()))))(tt, yy)
             gt, gx = jax.grad(g, argnums=(0, 1))(tt, yy)
             F = f(tt, yy)
-            out["L0"].append(g(tt, yy))
-            out["L1"].append(L1f(tt, yy))
-            out["L2"].append(L2f(tt, yy))
-            out["L3"].append(L3f(tt, yy))
+            out["L0"].append(L0)
+            out["L1"].append(L1)
+            out["L2"].append(L2)
+            out["L3"].append(L3)
             scale1 = jnp.abs(gt) + jnp.sum(jnp.abs(gx * F))
             out["band"].append(jnp.sum(jnp.abs(gx) * (atol + rtol * jnp.abs(yy))) + scale1 * tol_t)
             out["scale1"].append(scale1)

@@ -306,23 +306,30 @@ def constraint_kinematics(fns, t, q, dq, args):
 
 def kkt_solve(M, top, J, bottom, mask, least_norm=False):
     r"""Solve $M u - J^\top \mathrm{diag}(m) \mu = $ `top`, $m_i (J u)_i + (1 - m_i) \mu_i = m_i$
-    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$).
+    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$). With `least_norm`, close to the
+    least-norm $\mu$ for dependent rows (a regularised system, below).
 
-    With `least_norm`, the held rows read $(J u)_i + \varepsilon \mu_i = $ `bottom`$_i$ with
-    $\varepsilon = 10^{-10} \operatorname{tr}(J M^{-1} J^\top) / K$: eliminating $u$ leaves
-    $(J M^{-1} J^\top + \varepsilon I) \mu = \ldots$, whose solution tends to the least-norm
-    $\mu$ of dependent rows as $\varepsilon \to 0$ (the held rates are met to $\varepsilon |\mu|$).
-    Solved by elimination written as array operations (`_small_linalg.solve`), not LAPACK."""
+    Otherwise through the Schur complement ($M$ symmetric positive definite):
+    $u = M^{-1}(\text{top} + J_m^\top \mu)$ with
+    $(J_m M^{-1} J_m^\top + \mathrm{diag}(1 - m)) \mu = m \odot \text{bottom} - J_m M^{-1} \text{top}$,
+    $J_m = \mathrm{diag}(m) J$, both solved by `small_linalg.spd_solve`."""
     n = M.shape[0]
     Jm = mask[:, None] * J
-    corner = jnp.diag(1.0 - mask)
     if least_norm:
-        G = Jm @ small_linalg.solve(M, Jm.T)
-        corner = corner + 1e-10 * jnp.trace(G) / max(J.shape[0], 1) * jnp.diag(mask)
-    K = jnp.block([[M, -Jm.T], [Jm, corner]])
-    rhs = jnp.concatenate([top, mask * bottom])
-    sol = small_linalg.solve(K, rhs)
-    return sol[:n], sol[n:]
+        # (J u)_i + eps mu_i = bottom_i on the held rows: eliminating u leaves
+        # (J M^-1 J^T + eps I) mu = ..., whose solution tends to the least-norm mu of dependent
+        # rows as eps -> 0 (the held rates met to eps |mu|).
+        G = Jm @ small_linalg.spd_solve(M, Jm.T)
+        eps = 1e-10 * jnp.trace(G) / max(J.shape[0], 1)
+        K = jnp.block([[M, -Jm.T], [Jm, jnp.diag(1.0 - mask) + eps * jnp.diag(mask)]])
+        sol = small_linalg.solve(K, jnp.concatenate([top, mask * bottom]))
+        return sol[:n], sol[n:]
+    if Jm.shape[0] == 0:
+        return small_linalg.spd_solve(M, top), jnp.zeros((0,), top.dtype)
+    X = small_linalg.spd_solve(M, jnp.concatenate([top[:, None], Jm.T], axis=1))
+    v, W = X[:, 0], X[:, 1:]  # M^-1 top, M^-1 J_m^T
+    mu = small_linalg.spd_solve(Jm @ W + jnp.diag(1.0 - mask), mask * bottom - Jm @ v)
+    return v + W @ mu, mu
 
 
 def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False):
@@ -331,7 +338,7 @@ def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False)
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
     if not fns:
-        return small_linalg.solve(M, f), jnp.zeros((0,), q.dtype)
+        return small_linalg.spd_solve(M, f), jnp.zeros((0,), q.dtype)
     _, J, _, bias = constraint_kinematics(fns, t, q, dq, args)
     return kkt_solve(M, f, J, -bias, mask, least_norm)
 
@@ -349,16 +356,18 @@ def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
 
 
 def independence(scene, fns, held, t, q, args):
-    r"""How far the held constraints are from dependent: the smallest pivot of the Cholesky
-    factorisation with diagonal pivoting of $G = J M^{-1} J^\top$ on the held rows (identity
-    rows elsewhere), over its largest diagonal entry (`_small_linalg.rank_ratio`): 1 for
-    orthogonal unit constraints, 0 to rounding for dependent ones."""
+    r"""$\min_j d_j / \max_j G_{jj}$, $d_j$ the pivots ($L_{jj}^2$) of the Cholesky factor of
+    the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
+    NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
+    pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
+    as `kkt_solve` (no LAPACK call per lane)."""
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
-    G = J @ small_linalg.solve(M, J.T)
-    scale = jnp.max(jnp.where(held > 0, jnp.diagonal(G), 0.0))
-    G = held[:, None] * held[None, :] * G + jnp.where(scale > 0, scale, 1.0) * jnp.diag(1.0 - held)
-    return small_linalg.rank_ratio(0.5 * (G + G.T))
+    G = J @ small_linalg.spd_solve(M, J.T)
+    G = held[:, None] * held[None, :] * G + jnp.diag(1.0 - held)
+    L = small_linalg.cholesky(0.5 * (G + G.T))
+    pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
+    return jnp.min(pivots) / jnp.max(jnp.diag(G))
 
 
 _INDEPENDENT = 1e-9  # `independence` below this: dependent
