@@ -99,7 +99,9 @@ def friction_coefficients(scene: Scene, args, dtype) -> jax.Array:
 def state_name(scene: Scene, state: tuple) -> str:
     """`"left:stick+right:slip+"`: the held constraints, frictional ones with their state."""
     parts = [
-        c.name if s == HELD else f"{c.name}:{s}" for c, s in zip(scene.constraints, state) if s is not None
+        c.name if s == HELD else f"{c.name}:{s}"
+        for c, s in zip(scene.constraints, state, strict=True)
+        if s is not None
     ]
     return "+".join(parts) if parts else FREE
 
@@ -271,7 +273,7 @@ class _FrictionImpact(eqx.Module):
     def target(self, outcome) -> tuple:
         c, signs = outcome
         held = set(self.new_set(c))
-        slip = dict(zip(self.frictional(c), signs))
+        slip = dict(zip(self.frictional(c), signs, strict=True))
         return tuple(
             None if i not in held else ({1.0: SLIP_POS, -1.0: SLIP_NEG}[slip[i]] if i in slip else HELD)
             for i in range(len(self.scene.constraints))
@@ -522,7 +524,7 @@ def friction_system(
     for v in values:
         scene.check(v)
         mus = np.asarray(friction_coefficients(scene, v, dtype))
-        for c, mu in zip(scene.constraints, mus):
+        for c, mu in zip(scene.constraints, mus, strict=True):
             if c.friction is not None and not mu >= 0:
                 raise ValueError(
                     f"Constraint '{c.name}': the friction coefficient must be >= 0, got {mu} for args {v!r}."
@@ -630,7 +632,8 @@ def friction_system(
                     built.append(T)
                     frontier.append(T)
             else:
-                text = f"no state of the source found in the guard (least violation {np.nanmin(w.violation[i]):.2g})"
+                least = np.nanmin(w.violation[i])
+                text = f"no state of the source found in the guard (least violation {least:.2g})"
             outcomes.setdefault((S, kind, j), []).append((detail, T, bool(found_v.any()), text))
 
     return _assemble(scene, built, outcomes, impacts, margin, len(values))
@@ -639,7 +642,7 @@ def friction_system(
 def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSystem:
     """Modes, transitions (in each mode: consistency, impacts, lift-offs, stick/slip) and the
     report of a friction build."""
-    n, K = scene.dim, len(scene.constraints)
+    n = scene.dim
     funcs = {S: _StateFunctions(scene, S) for S in built}
     names = scene.names or tuple(f"q[{i}]" for i in range(n))
     comp = tuple(names) + tuple(f"d{s}" for s in names)
@@ -718,7 +721,9 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
             "that change the transitions found needs a system built over all of them"
         )
     states = tuple(built) + (None,) * len(terminals)
-    contact_sets = tuple(tuple(c.name for c, s in zip(scene.constraints, S) if s is not None) for S in built)
+    contact_sets = tuple(
+        tuple(c.name for c, s in zip(scene.constraints, S, strict=True) if s is not None) for S in built
+    )
     return FrictionSystem(
         modes,
         transitions,
