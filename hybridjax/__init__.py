@@ -52,3 +52,4 @@ from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
 from ._zeno import ZenoOptions as ZenoOptions
+from ._friction import FrictionSystem as FrictionSystem

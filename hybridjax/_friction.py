@@ -16,9 +16,9 @@ conditions, each boundary of a domain a guard):
 - stick $\to$ slip $d$: $\mu \lambda_n + d \lambda_t \le 0$ (the force needed to stick leaves the
   cone on the side opposite to the motion it cannot prevent), identity reset;
 - slip $s \to$ stick or slip $-s$: $s \dot b \le 0$; the force the contact would need to stick
-  there decides: it sticks when $|\lambda_t| \le \mu \lambda_n$, and otherwise slips the other way,
-  $-\mathrm{sign}(\lambda_t)$ (from slip $s$ that is $-s$ whenever the speed reaches 0
-  transversally); identity reset;
+  there decides: it sticks when $|\lambda_t| \le \mu \lambda_n$ (with the other slipping
+  contacts stopped at the same instant, when all of theirs are in their cones; the velocity is
+  projected onto the new constraints), and otherwise slips the other way (identity reset);
 - lift-off $\lambda_n \le 0$ and impacts as for frictionless contacts;
 - the slip mode's normal equation is consistent while $\det(J_n M^{-1} (J_n - \mu s J_t)^\top)
   > 0$ on the held rows (positive without friction); where it reaches 0 (Painleve's paradox) the
@@ -68,6 +68,9 @@ from ._system import Mode, Transition
 HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
 SIGN = {SLIP_POS: 1.0, SLIP_NEG: -1.0}
 INCONSISTENT = "inconsistent: "
+# Sliding speeds within this fraction of 1 + max |dq| of 0 when another contact stops count as
+# stopped with it (a flat body's two ends stop at one instant, up to rounding).
+_SPEED_TIE = 1e-8
 
 
 # ----------------------------------------------------------------------------- layout and states
@@ -144,10 +147,13 @@ def parse_state(scene: Scene, spec) -> tuple:
 # ----------------------------------------------------------------------------- mechanics
 
 
-def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args):
+def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=True):
     r"""$\ddot q$ and the row forces $\lambda$ of a state: $M \ddot q = f + W^\top \lambda$,
     $J \ddot q = -c$ on the held rows, with $W = J$ except on a slipping contact's normal row,
-    $W_k = J_k - \mu_k s_k J_{t,k}$. Returns $(\ddot q, \lambda, J, \dot a, c)$."""
+    $W_k = J_k - \mu_k s_k J_{t,k}$. Returns $(\ddot q, \lambda, J, \dot a, c)$.
+
+    `least_norm`: the least-norm forces (pseudo-inverse), for more held rows than coordinates:
+    two sticking contacts of one rigid body share a tangential force they do not determine."""
     fns, _, tan, _, _ = _layout(scene)
     K, n = len(scene.constraints), scene.dim
     M = jnp.asarray(scene.mass(q, args), q.dtype)
@@ -157,7 +163,8 @@ def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args):
     W = J.at[:K].add(-slip[:, None] * (jnp.asarray(tan, q.dtype) @ J))
     m = rows_mask
     lhs = jnp.block([[M, -(m[:, None] * W).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
-    sol = jnp.linalg.solve(lhs, jnp.concatenate([f, -m * bias]))
+    rhs = jnp.concatenate([f, -m * bias])
+    sol = jnp.linalg.pinv(lhs, rtol=1e-10) @ rhs if least_norm else jnp.linalg.solve(lhs, rhs)
     return sol[:n], sol[n:], J, rate, bias
 
 
@@ -188,7 +195,10 @@ class _StateFunctions(eqx.Module):
     def solve(self, t, x, args):
         n = self.scene.dim
         rows_mask, sign = self._arrays(x.dtype)
-        ddq, lam, J, rate, bias = friction_solve(self.scene, rows_mask, sign, t, x[:n], x[n:], args)
+        least_norm = int(_state_arrays(self.scene, self.state)[1].sum()) > n
+        ddq, lam, J, rate, bias = friction_solve(
+            self.scene, rows_mask, sign, t, x[:n], x[n:], args, least_norm
+        )
         return ddq, lam, rate
 
     def flow(self, t, x, args):
@@ -210,23 +220,62 @@ class _StateFunctions(eqx.Module):
 
         return g
 
-    def stop(self, j, to_stick: bool):
-        """s v_t of slipping contact j where sticking there is (`to_stick`) or is not in the
-        cone, positive elsewhere."""
+    def others_slipping(self, j) -> tuple:
+        return tuple(i for i, st in enumerate(self.state) if st in SIGN and i != j)
+
+    def stuck(self, members) -> "_StateFunctions":
+        """This state with the contacts `members` sticking."""
+        return _StateFunctions(
+            self.scene, tuple(STICK if i in members else st for i, st in enumerate(self.state))
+        )
+
+    def stop(self, j, to_stick: bool, tied: tuple = ()):
+        """s v_t of slipping contact j where the stop rule sends it (`to_stick`: it sticks with
+        the other slipping contacts `tied`, those stopped at the same instant; otherwise it
+        slips back), positive elsewhere."""
         s = SIGN[self.state[j]]
         tan = _layout(self.scene)[2]
-        r = int(np.argmax(tan[j]))
-        stuck = _StateFunctions(self.scene, self.state[:j] + (STICK,) + self.state[j + 1 :])
+        row = [int(np.argmax(tan[i])) for i in range(len(self.state))]
+        others = self.others_slipping(j)
+        subsets = [c for size in range(len(others) + 1) for c in itertools.combinations(others, size)]
+
+        def decide(t, x, args):
+            """(index in `subsets` of the contacts stopped with j, whether all of them stick)."""
+            rate = self.solve(t, x, args)[2]
+            scale = 1.0 + jnp.max(jnp.abs(x[self.scene.dim :]))
+            stopped = [jnp.abs(rate[row[i]]) <= _SPEED_TIE * scale for i in others]
+            mu = friction_coefficients(self.scene, args, x.dtype)
+            which, inside = jnp.array(-1), jnp.array(False)
+            for c, members in enumerate(subsets):
+                match = jnp.all(
+                    jnp.stack([stopped[others.index(i)] == (i in members) for i in others] + [True])
+                )
+                lam = self.stuck((j, *members)).solve(t, x, args)[1]
+                ok = jnp.all(jnp.stack([jnp.abs(lam[row[i]]) <= mu[i] * lam[i] for i in (j, *members)]))
+                which, inside = jnp.where(match, c, which), jnp.where(match, ok, inside)
+            return which, inside
 
         def g(t, x, args):
-            v = s * self.solve(t, x, args)[2][r]
+            v = s * self.solve(t, x, args)[2][row[j]]
             # Which way it goes is a discrete choice: no derivative flows through it.
-            lam = stuck.solve(*jax.lax.stop_gradient((t, x, args)))[1]
-            mu = friction_coefficients(self.scene, args, x.dtype)[j]
-            inside = jnp.abs(lam[r]) <= mu * lam[j]
-            return jnp.where(inside == to_stick, v, jnp.abs(v) + 1.0)
+            which, inside = decide(*jax.lax.stop_gradient((t, x, args)))
+            go = (inside & (which == subsets.index(tied))) if to_stick else ~inside
+            return jnp.where(go, v, jnp.abs(v) + 1.0)
 
         return g
+
+    def project(self, t, x, args):
+        """The velocity projected through M onto this state's held rows (a plastic impulse):
+        the reset into a stick state, so that its tangential speed is exactly 0."""
+        n = self.scene.dim
+        _, rows_mask, _ = _state_arrays(self.scene, self.state)
+        fns = _layout(self.scene)[0]
+        zeros = jnp.zeros(len(fns), x.dtype)
+        least_norm = int(rows_mask.sum()) > n
+        dq = impact(
+            self.scene, fns, jnp.asarray(rows_mask, x.dtype), zeros, t, x[:n], x[n:], args, least_norm
+        )[0]
+        return jnp.concatenate([x[:n], dq])
 
     def consistency(self, t, x, args):
         rows_mask, sign = self._arrays(x.dtype)
@@ -361,11 +410,20 @@ class _FQuery(eqx.Module):
     unstick: jax.Array  # (K) one-hot stick -> slip
     direction: jax.Array  # () the slip direction d of `unstick`
     stop: jax.Array  # (K) one-hot slip -> stick or reverse
+    tied: jax.Array  # (K) slipping contacts stopped at the same instant (they stick with it)
     to_stick: jax.Array  # () 1: the stop sticks, 0: it reverses
     hit: jax.Array  # (K) one-hot impact
     impact_rows: jax.Array  # (R) rows the impact holds
     released: jax.Array  # (K) released constraints
     post: jax.Array  # (K) required sign of the tangential velocity after the impact (0: any)
+
+
+def _after(x, dependency):
+    """`x`, computed after `dependency`. The search's dense solves are batched LAPACK calls that
+    share XLA:CPU's thread pool; two of them running at once on a 2-core machine can each wait
+    for the other's worker and never finish, so each solve here waits for the previous one."""
+    x, _ = jax.lax.optimization_barrier((x, dependency))
+    return x
 
 
 @functools.cache
@@ -383,17 +441,20 @@ def _friction_queries(scene: Scene, margin: float):
         ddq, lam, J, rate, bias = friction_solve(scene, Q.rows, Q.sign, t, q, dq, args)
         lam_n, lam_t, v_t = lam[:K], tan @ lam, tan @ rate
         acc_t = tan @ (J @ ddq + bias)
-        # The stopping contact's force were it to stick here.
-        lam2 = friction_solve(scene, Q.rows + tan.T @ Q.stop, Q.sign * (1 - Q.stop), t, q, dq, args)[1]
+        # The stopping contacts' forces were they to stick here.
+        stopping = Q.stop + Q.tied
+        q2, dq2 = _after((q, dq), lam)
+        lam2 = friction_solve(scene, Q.rows + tan.T @ stopping, Q.sign * (1 - stopping), t, q2, dq2, args)[1]
         lam2_n, lam2_t = lam2[:K], tan @ lam2
         e = jnp.stack([jnp.asarray(c.coefficient(args), dt) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, dt)])
-        _, P, rates_plus = impact(scene, fns, Q.impact_rows, e, t, q, dq, args)
+        q3, dq3 = _after((q, dq), lam2)
+        _, P, rates_plus = impact(scene, fns, Q.impact_rows, e, t, q3, dq3, args)
         stuck = fr * (tan @ Q.rows)
         slipping = jnp.abs(Q.sign)
         s = Q.sign
         one = jnp.ones_like(a)
-        eq = jnp.concatenate([Q.held * a, Q.rows * rate, Q.hit * a, Q.stop * v_t])
+        eq = jnp.concatenate([Q.held * a, Q.rows * rate, Q.hit * a, stopping * v_t])
 
         def where(mask, value):
             return jnp.where(mask > 0, value, one)
@@ -401,13 +462,13 @@ def _friction_queries(scene: Scene, margin: float):
         ineq = jnp.concatenate(
             [
                 where(uni * (1 - Q.held) * (1 - Q.hit), a),
-                where(slipping * (1 - Q.stop), s * v_t),
+                where(slipping * (1 - stopping), s * v_t),
                 where(uni * Q.held * Q.flowing * (1 - Q.lift), lam_n),
                 where(stuck * Q.flowing * (1 - Q.unstick), mu * lam_n - jnp.abs(lam_t)),
                 where(Q.lift, -lam_n - margin),
                 where(Q.unstick, -(mu * lam_n + Q.direction * lam_t) - margin),
                 where(Q.stop, -s * acc_t - margin),
-                where(Q.stop * Q.to_stick, mu * lam2_n - jnp.abs(lam2_t)),
+                where(stopping * Q.to_stick, mu * lam2_n - jnp.abs(lam2_t)),
                 where(Q.stop * (1 - Q.to_stick), s * lam2_t - mu * lam2_n - margin),
                 where(Q.hit, -rate[:K] - margin),
                 where(Q.impact_rows[:K] * uni, P[:K]),
@@ -437,6 +498,7 @@ def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
         unstick=np.zeros(K),
         direction=0.0,
         stop=np.zeros(K),
+        tied=np.zeros(K),
         to_stick=0.0,
         hit=np.zeros(K),
         impact_rows=np.zeros(R),
@@ -608,10 +670,17 @@ def friction_system(
                         qs.append(_query(scene, S, unstick=(j, 1.0), direction=d))
                         keys.append((S, "slip", j, d, S[:j] + (status,) + S[j + 1 :]))
                 elif S[j] in SIGN:
+                    others = _StateFunctions(scene, S).others_slipping(j)
+                    for size in range(len(others) + 1):
+                        for tied in itertools.combinations(others, size):
+                            mask = np.zeros(K)
+                            mask[list(tied)] = 1.0
+                            T = tuple(STICK if i in (j, *tied) else st for i, st in enumerate(S))
+                            qs.append(_query(scene, S, stop=(j, 1.0), tied=mask, to_stick=1.0))
+                            keys.append((S, "stop", j, tied, T))
                     other = SLIP_NEG if S[j] == SLIP_POS else SLIP_POS
-                    for to_stick, status in ((1.0, STICK), (0.0, other)):
-                        qs.append(_query(scene, S, stop=(j, 1.0), to_stick=to_stick))
-                        keys.append((S, "stop", j, bool(to_stick), S[:j] + (status,) + S[j + 1 :]))
+                    qs.append(_query(scene, S, stop=(j, 1.0), to_stick=0.0))
+                    keys.append((S, "stop", j, None, S[:j] + (other,) + S[j + 1 :]))
         frontier = []
         if not qs:
             break
@@ -704,11 +773,13 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
                 elif kind == "slip":
                     guard = funcs[S].cone(j, detail, off)
                 else:
-                    guard = funcs[S].stop(j, detail)
-                label = {"lift-off": "lift-off", "slip": "slip", "stop": "stick" if detail else "reverse"}[
+                    guard = funcs[S].stop(j, detail is not None, detail or ())
+                stick = kind == "stop" and detail is not None
+                reset = _StateFunctions(scene, T).project if stick else None
+                label = {"lift-off": "lift-off", "slip": "slip", "stop": "stick" if stick else "reverse"}[
                     kind
                 ]
-                add(src, T, guard, None, f"{label} {cname}", text, ok)
+                add(src, T, guard, reset, f"{label} {cname}", text, ok)
     for term in terminals:
         modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
 
