@@ -51,5 +51,5 @@ from ._system import ZenoCompletion as ZenoCompletion
 from ._validation import DefinitionError as DefinitionError
 
 __version__ = "0.1.0"
-from ._zeno import ZenoOptions as ZenoOptions
 from ._friction import FrictionSystem as FrictionSystem
+from ._zeno import ZenoOptions as ZenoOptions
