@@ -147,13 +147,14 @@ def parse_state(scene: Scene, spec) -> tuple:
 # ----------------------------------------------------------------------------- mechanics
 
 
-def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=True):
+def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=False):
     r"""$\ddot q$ and the row forces $\lambda$ of a state: $M \ddot q = f + W^\top \lambda$,
     $J \ddot q = -c$ on the held rows, with $W = J$ except on a slipping contact's normal row,
     $W_k = J_k - \mu_k s_k J_{t,k}$. Returns $(\ddot q, \lambda, J, \dot a, c)$.
 
     `least_norm`: the least-norm forces (pseudo-inverse), for more held rows than coordinates:
-    two sticking contacts of one rigid body share a tangential force they do not determine."""
+    two sticking contacts of one rigid body share a tangential force they do not determine;
+    `"search"`: nearly least-norm, without LAPACK (`_regularised_solve`)."""
     fns, _, tan, _, _ = _layout(scene)
     K, n = len(scene.constraints), scene.dim
     M = jnp.asarray(scene.mass(q, args), q.dtype)
@@ -164,8 +165,46 @@ def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=Tru
     m = rows_mask
     lhs = jnp.block([[M, -(m[:, None] * W).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
     rhs = jnp.concatenate([f, -m * bias])
-    sol = jnp.linalg.pinv(lhs, rtol=1e-10) @ rhs if least_norm else jnp.linalg.solve(lhs, rhs)
+    if least_norm == "search":
+        sol = _regularised_solve(lhs, rhs, m, n)
+    else:
+        sol = jnp.linalg.pinv(lhs, rtol=1e-10) @ rhs if least_norm else jnp.linalg.solve(lhs, rhs)
     return sol[:n], sol[n:], J, rate, bias
+
+
+def _regularised_solve(lhs, rhs, m, n):
+    r"""The KKT solve of the witness search, without LAPACK: the held rows get $-\epsilon$ on
+    their diagonal ($\epsilon = 10^{-10}$ of the system's scale, so dependent rows give nearly
+    least-norm forces), then Gauss-Jordan elimination with partial pivoting, unrolled.
+
+    Batched LAPACK calls share XLA:CPU's thread pool: two running at once on a 2-core machine
+    can each wait for a worker the other holds, and the search never returns."""
+    size = lhs.shape[0]
+    eps = 1e-10 * jnp.max(jnp.abs(lhs[n:, :n])) ** 2 / jnp.max(jnp.abs(jnp.diag(lhs)[:n]))
+    A = lhs.at[n:, n:].add(-eps * jnp.diag(m))
+    A = jnp.concatenate([A, rhs[:, None]], axis=1)
+    index = jnp.arange(size)
+    for k in range(size):
+        p = k + jnp.argmax(jnp.abs(A[k:, k]))
+        row_k, row_p = A[k], A[p]
+        A = A.at[k].set(row_p).at[p].set(row_k)
+        factor = jnp.where(index == k, 0.0, A[:, k] / A[k, k])
+        A = A - factor[:, None] * A[k][None, :]
+    return A[:, size] / jnp.diag(A[:, :size])
+
+
+def _search_impact(scene: Scene, held_rows, e, t, q, dq, args):
+    r"""`impact` with the search's solve: $(P, J \dot q^+ + a_t)$."""
+    fns = _layout(scene)[0]
+    n = scene.dim
+    M = jnp.asarray(scene.mass(q, args), q.dtype)
+    _, J, adot, _ = constraint_kinematics(fns, t, q, dq, args)
+    a_t = adot - J @ dq
+    m = held_rows
+    lhs = jnp.block([[M, -(m[:, None] * J).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
+    rhs = jnp.concatenate([M @ dq, m * (-e * adot - (1.0 + e) * a_t)])
+    sol = _regularised_solve(lhs, rhs, m, n)
+    return sol[n:], J @ sol[:n] + a_t
 
 
 def slip_consistency(scene: Scene, rows_mask, sign, t, q, args):
@@ -418,14 +457,6 @@ class _FQuery(eqx.Module):
     post: jax.Array  # (K) required sign of the tangential velocity after the impact (0: any)
 
 
-def _after(x, dependency):
-    """`x`, computed after `dependency`. The search's dense solves are batched LAPACK calls that
-    share XLA:CPU's thread pool; two of them running at once on a 2-core machine can each wait
-    for the other's worker and never finish, so each solve here waits for the previous one."""
-    x, _ = jax.lax.optimization_barrier((x, dependency))
-    return x
-
-
 @functools.cache
 def _friction_queries(scene: Scene, margin: float):
     fns, owners, tan_np, friction_np, unilateral_np = _layout(scene)
@@ -438,18 +469,18 @@ def _friction_queries(scene: Scene, margin: float):
         tan, fr, uni = (jnp.asarray(a, dt) for a in (tan_np, friction_np, unilateral_np))
         mu = friction_coefficients(scene, args, dt)
         a = constraint_kinematics(fns, t, q, dq, args)[0][:K]
-        ddq, lam, J, rate, bias = friction_solve(scene, Q.rows, Q.sign, t, q, dq, args)
+        ddq, lam, J, rate, bias = friction_solve(scene, Q.rows, Q.sign, t, q, dq, args, "search")
         lam_n, lam_t, v_t = lam[:K], tan @ lam, tan @ rate
         acc_t = tan @ (J @ ddq + bias)
         # The stopping contacts' forces were they to stick here.
         stopping = Q.stop + Q.tied
-        q2, dq2 = _after((q, dq), lam)
-        lam2 = friction_solve(scene, Q.rows + tan.T @ stopping, Q.sign * (1 - stopping), t, q2, dq2, args)[1]
+        lam2 = friction_solve(
+            scene, Q.rows + tan.T @ stopping, Q.sign * (1 - stopping), t, q, dq, args, "search"
+        )[1]
         lam2_n, lam2_t = lam2[:K], tan @ lam2
         e = jnp.stack([jnp.asarray(c.coefficient(args), dt) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, dt)])
-        q3, dq3 = _after((q, dq), lam2)
-        _, P, rates_plus = impact(scene, fns, Q.impact_rows, e, t, q3, dq3, args)
+        P, rates_plus = _search_impact(scene, Q.impact_rows, e, t, q, dq, args)
         stuck = fr * (tan @ Q.rows)
         slipping = jnp.abs(Q.sign)
         s = Q.sign
