@@ -539,9 +539,10 @@ def rimless_wheel_scene_closed_form(
     return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
 
 
-def rod_scene(friction: bool = False) -> Scene:
-    r"""A rod of mass m and length L falling in a vertical plane onto a floor, frictionless or
-    (`friction=True`) with Coulomb friction `args["mu"]` at both ends.
+def rod_scene(friction: tuple[str, ...] = ()) -> Scene:
+    r"""A rod of mass m and length L falling in a vertical plane onto a floor, frictionless
+    except at the ends named in `friction` (`("left",)`, `("left", "right")`), which have
+    Coulomb friction `args["mu"]`.
 
     q = (x, z, phi): the centre and the angle from horizontal; M = diag(m, m, m L^2 / 12);
     gravity -m g along z. Its ends are the contacts "left" (gap z - (L/2) sin phi) and "right"
@@ -559,7 +560,7 @@ def rod_scene(friction: bool = False) -> Scene:
         return lambda t, q, p: q[0] + sign * 0.5 * p["L"] * jnp.cos(q[2])
 
     def contact(name, sign):
-        if not friction:
+        if name not in friction:
             return Constraint(name, end(sign))
         return Constraint(name, end(sign), tangent=end_x(sign), friction=lambda p: p["mu"])
 
