@@ -52,3 +52,4 @@ from ._solve.simulate_batch import simulate_batch as simulate_batch
 
 __version__ = "0.1.0"
 from ._rules.zeno import ZenoOptions as ZenoOptions
+from ._scenes.friction import FrictionSystem as FrictionSystem

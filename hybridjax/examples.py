@@ -539,24 +539,36 @@ def rimless_wheel_scene_closed_form(
     return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
 
 
-def rod_scene() -> Scene:
-    r"""A rod of mass m and length L falling in a vertical plane onto a frictionless floor.
+def rod_scene(friction: tuple[str, ...] = ()) -> Scene:
+    r"""A rod of mass m and length L falling in a vertical plane onto a floor, frictionless
+    except at the ends named in `friction` (`("left",)`, `("left", "right")`), which have
+    Coulomb friction `args["mu"]`.
 
     q = (x, z, phi): the centre and the angle from horizontal; M = diag(m, m, m L^2 / 12);
     gravity -m g along z. Its ends are the contacts "left" (gap z - (L/2) sin phi) and "right"
     (gap z + (L/2) sin phi), plastic. Dropped tilted, it lands on its lower end, pivots and slides
     on it, then lands on the other: which end hits first, whether the first one is released and
-    whether it comes to rest depend on the order of these events. `args = {"m", "g", "L"}`.
+    whether it comes to rest depend on the order of these events. `args = {"m", "g", "L"}`
+    (and `"mu"`). With friction each end's tangent is its x coordinate, `x -/+ (L/2) cos phi`,
+    and each end sticks or slips (modes such as `"left:stick+right:slip+"`).
     """
 
     def end(sign):
         return lambda t, q, p: q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])
 
+    def end_x(sign):
+        return lambda t, q, p: q[0] + sign * 0.5 * p["L"] * jnp.cos(q[2])
+
+    def contact(name, sign):
+        if name not in friction:
+            return Constraint(name, end(sign))
+        return Constraint(name, end(sign), tangent=end_x(sign), friction=lambda p: p["mu"])
+
     return Scene(
         dim=3,
         mass=lambda q, p: jnp.diag(jnp.stack([p["m"], p["m"], p["m"] * p["L"] ** 2 / 12 + 0.0 * q[2]])),
         forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1], 0.0 * q[2]]),
-        constraints=[Constraint("left", end(-1.0)), Constraint("right", end(1.0))],
+        constraints=[contact("left", -1.0), contact("right", 1.0)],
         q_range=((-0.5, 0.0, -1.0), (0.5, 1.0, 1.0)),
         dq_range=(-2.0, 2.0),
         names=("x", "z", "phi"),

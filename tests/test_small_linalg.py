@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hybridjax._core.small_linalg import cholesky, least_squares, solve, spd_solve
+from hybridjax._core.small_linalg import cholesky, det, least_squares, solve, spd_solve
 
 RNG = np.random.default_rng(0)
 
@@ -16,6 +16,13 @@ def test_solve_equals_lapack_and_pivots():
         np.testing.assert_allclose(solve(a, B), np.linalg.solve(a, B), rtol=1e-12, atol=1e-12)
     # a zero first pivot needs the row exchange
     np.testing.assert_allclose(solve(jnp.array([[0.0, 1.0], [1.0, 0.0]]), jnp.array([2.0, 3.0])), [3.0, 2.0])
+
+
+def test_det_equals_lapack_with_its_sign():
+    for n in (1, 3, 6):
+        a = RNG.normal(size=(n, n))
+        np.testing.assert_allclose(det(a), np.linalg.det(a), rtol=1e-12)
+    assert float(det(jnp.array([[0.0, 1.0], [1.0, 0.0]]))) == -1.0  # one row exchange
 
 
 def test_solve_derivative_by_the_inverse():

@@ -15,20 +15,28 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 
-def solve(a: Float[Array, "n n"], b: Float[Array, "n ..."]) -> Float[Array, "n ..."]:
-    """$x$ with $a x = b$, by Gaussian elimination with partial pivoting (the row of largest
-    magnitude in each column), unrolled over $n$. A singular `a` gives non-finite values, as
-    `jnp.linalg.solve` does."""
-    n = a.shape[-1]
-    vector = b.ndim == 1
-    m = jnp.concatenate([a, b[:, None] if vector else b], axis=1)
+def _eliminate(m, n: int):
+    """Forward elimination with partial pivoting (the row of largest magnitude in each column)
+    of the first `n` columns of `m`, unrolled over `n`: the row-echelon `m` and the sign of the
+    row permutation."""
     rows = jnp.arange(n)
+    sign = jnp.ones((), m.dtype)
     for k in range(n):
         p = jnp.argmax(jnp.where(rows >= k, jnp.abs(m[:, k]), -1.0))
         row_k, row_p = m[k], m[p]
         m = m.at[p].set(row_k).at[k].set(row_p)
+        sign = jnp.where(p == k, sign, -sign)
         factor = jnp.where(rows > k, m[:, k] / m[k, k], 0.0)
         m = m - factor[:, None] * m[k][None, :]
+    return m, sign
+
+
+def solve(a: Float[Array, "n n"], b: Float[Array, "n ..."]) -> Float[Array, "n ..."]:
+    """$x$ with $a x = b$, by Gaussian elimination with partial pivoting, unrolled over $n$.
+    A singular `a` gives non-finite values, as `jnp.linalg.solve` does."""
+    n = a.shape[-1]
+    vector = b.ndim == 1
+    m, _ = _eliminate(jnp.concatenate([a, b[:, None] if vector else b], axis=1), n)
     x = [None] * n
     for k in reversed(range(n)):
         acc = m[k, n:]
@@ -37,6 +45,14 @@ def solve(a: Float[Array, "n n"], b: Float[Array, "n ..."]) -> Float[Array, "n .
         x[k] = acc / m[k, k]
     out = jnp.stack(x)
     return out[:, 0] if vector else out
+
+
+def det(a: Float[Array, "n n"]) -> Float[Array, ""]:
+    """$\det a$: the product of the pivots of `solve`'s elimination, signed by its row
+    exchanges."""
+    n = a.shape[-1]
+    m, sign = _eliminate(a, n)
+    return sign * jnp.prod(jnp.diagonal(m))
 
 
 def cholesky(A) -> list:

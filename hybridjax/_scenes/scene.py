@@ -98,6 +98,10 @@ class Constraint(eqx.Module):
       the surface, for a contact that sticks while it is held (a foot that does not slip,
       unlimited friction): its rate $\dot b$ is held at 0 with the gap (the impact stops it
       too), its force $\lambda_t$ is free in sign, and it is released with the gap.
+    - `friction`: optional Coulomb coefficient $\mu \ge 0$ (a number or `friction(args) -> mu`)
+      of a unilateral contact with a `tangent`: the contact then sticks ($\dot b = 0$ held,
+      $|\lambda_t| \le \mu \lambda_n$) or slips ($\lambda_t = -\mu\, \mathrm{sign}(\dot b)
+      \lambda_n$), each a mode (`"name:stick"`, `"name:slip+"`, `"name:slip-"`); see `contact_system`.
 
     !!! Example
 
@@ -111,6 +115,7 @@ class Constraint(eqx.Module):
     kind: str = eqx.field(static=True, default=UNILATERAL)
     restitution: float | Callable | None = eqx.field(static=True, default=None)
     tangent: Callable | None = eqx.field(static=True, default=None)
+    friction: float | Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name or "+" in self.name:
@@ -123,6 +128,7 @@ class Constraint(eqx.Module):
             )
         if self.tangent is not None and not callable(self.tangent):
             raise TypeError(f"Constraint '{self.name}': `tangent` must be callable or None.")
+        _check_friction(self)
         e = self.restitution
         if e is not None and self.kind == BILATERAL:
             raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
@@ -143,6 +149,20 @@ class Constraint(eqx.Module):
         if e is None:
             return 0.0
         return e(args) if callable(e) else e
+
+
+def _check_friction(c: "Constraint") -> None:
+    """A friction coefficient needs a unilateral contact with a tangent, and is >= 0."""
+    mu = c.friction
+    if mu is None:
+        return
+    if c.kind != UNILATERAL or c.tangent is None:
+        raise ValueError(f"Constraint '{c.name}': `friction` needs a unilateral constraint with a `tangent`.")
+    if not callable(mu) and (isinstance(mu, bool) or not isinstance(mu, (int, float)) or not mu >= 0.0):
+        raise ValueError(
+            f"Constraint '{c.name}': the friction coefficient must be a number >= 0 or a function of "
+            f"args, got {mu!r}."
+        )
 
 
 class Scene(eqx.Module):
@@ -664,13 +684,8 @@ class ContactSystem(HybridSystem):
         """The contact sets built as modes (sets of constraint names)."""
         return tuple(frozenset(s) for s in self.contact_sets if s is not None)
 
-    def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
-        r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
-        per sticking contact's tangential force, as `force_names`; 0 for a constraint not held) at
-        the saved states `sol.ts`, `sol.ys` of a solution of this system
-        (NaN at save times the execution did not reach). `args` defaults to `sol.args` (for a
-        batch, one value per execution)."""
-        args = sol.args if args is None else args
+    def _force_function(self) -> Callable:
+        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
         scene, K = self.scene, len(self.scene.constraints)
         fns, owners = rows(scene, range(K))
         table = np.zeros((self.num_modes, K))
@@ -688,6 +703,17 @@ class ContactSystem(HybridSystem):
             t = jnp.where(ok, t, 0.0)
             _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
             return jnp.where(ok, lam * mask, jnp.nan)
+
+        return one
+
+    def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
+        r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
+        per sticking contact's tangential force, as `force_names`; 0 for a constraint not held) at
+        the saved states `sol.ts`, `sol.ys` of a solution of this system
+        (NaN at save times the execution did not reach). `args` defaults to `sol.args` (for a
+        batch, one value per execution)."""
+        args = sol.args if args is None else args
+        one = self._force_function()
 
         def execution(ts, ys, modes, args):
             return jax.vmap(lambda t, y, m: one(t, y, m, args))(ts, ys, modes)
@@ -780,6 +806,13 @@ def contact_system(
         raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
     if form not in ("branch", "mask"):
         raise ValueError(f"contact_system: `form` must be 'branch' or 'mask', got {form!r}.")
+    if any(c.friction is not None for c in scene.constraints):
+        from .._scenes.friction import friction_system
+
+        return friction_system(
+            scene, initial, args, args_values=args_values, num_samples=num_samples, num_starts=num_starts,
+            margin=margin, tol=tol, seed=seed, redundant=redundant, max_modes=max_modes, relabels=relabels,
+        )  # fmt: skip
     values = list(args_values) if args_values is not None else [args]
     if not values:
         raise ValueError("contact_system: `args_values` is empty.")
