@@ -53,7 +53,6 @@ from .scene import (
     UNILATERAL,
     ContactSystem,
     Scene,
-    _fmt,
     _identity,
     _range,
     _releases,
@@ -64,6 +63,7 @@ from .scene import (
     impact,
     independence,
     rows,
+    witness_text,
 )
 
 HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
@@ -704,13 +704,7 @@ def friction_system(
         for i, (S, kind, j, detail, T) in enumerate(keys):
             found_v = w.found[i]
             if found_v.any():
-                v = int(np.argmax(found_v))
-                where = (
-                    ""
-                    if found_v.all()
-                    else f", only for args_values {[int(a) for a in np.flatnonzero(found_v)]}"
-                )
-                text = f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
+                text = witness_text(w, i, n)
                 if T not in built:
                     if len(built) >= max_modes:
                         raise ValueError(f"contact_system: more than max_modes={max_modes} states reached.")

@@ -747,6 +747,15 @@ def _fmt(x) -> str:
     return "(" + ", ".join(f"{v:.3g}" for v in np.ravel(x)) + ")"
 
 
+def witness_text(w, i: int, n: int) -> str:
+    """The report line of query `i`'s witness (found for some `args` value): its time, q and
+    dq, and the `args` values it was found for where not all."""
+    found_v = w.found[i]
+    v = int(np.argmax(found_v))
+    where = "" if found_v.all() else f", only for args_values {[int(a) for a in np.flatnonzero(found_v)]}"
+    return f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
+
+
 def contact_system(
     scene: Scene,
     initial: Sequence,
@@ -917,13 +926,7 @@ def contact_system(
         for i, (A, kind, j, c, T) in enumerate(keys):
             found_v = w.found[i]
             if found_v.any():
-                v = int(np.argmax(found_v))
-                where = (
-                    ""
-                    if found_v.all()
-                    else f", only for args_values {[int(i) for i in np.flatnonzero(found_v)]}"
-                )
-                text = f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
+                text = witness_text(w, i, n)
                 T = canonical(T)[0]
                 if T not in built:
                     if len(built) >= max_modes:
