@@ -329,7 +329,7 @@ def test_rod_lands_on_one_end_then_the_other_and_rests():
 
 
 def test_kkt_solve_against_the_dense_system():
-    from hybridjax._scenes.scene import kkt_solve
+    from hybridjax._scenes.mechanics import kkt_solve
 
     rng = np.random.default_rng(0)
     n, m = 4, 3
@@ -351,7 +351,7 @@ def test_kkt_solve_against_the_dense_system():
 
 
 def test_independence_bounds_the_gram_eigenvalue_ratio():
-    from hybridjax._scenes.scene import independence
+    from hybridjax._scenes.mechanics import independence
 
     scene = examples.polygon_particle(3)
     fns = tuple(c.fn for c in scene.constraints)
@@ -365,3 +365,89 @@ def test_independence_bounds_the_gram_eigenvalue_ratio():
     same = (fns[0], fns[0])
     ratio = independence(scene, same, jnp.ones(2), 0.0, q, args)
     assert not ratio > 1e-9
+
+
+def test_release_choice_and_impact_map_by_hand():
+    """A point sliding along the floor at speed 1 into the 45-degree wall of an octagon.
+
+    Rows: the floor a_0 = r + z (gradient (0, 1)) and wall 1, gradient (-s, s), s = 1/sqrt 2;
+    M = I. Holding both stops the point, J^T P = -(1, 0): P_1 = sqrt 2, P_0 = -1 < 0 (pulling),
+    so the floor is released; the wall alone gives P_1 = s, dq+ = (1, 0) + s (-s, s) = (1/2, 1/2),
+    whose floor rate 1/2 >= 0 separates: candidate 1 of (hold both, release the floor)."""
+    from hybridjax._scenes.mechanics import impact_map, kinematics, release_choice, rows, selection_guard
+
+    scene = examples.polygon_particle(8)
+    fns, _ = rows(scene, (0, 1))
+    args = {"g": jnp.asarray(G), "r": jnp.asarray(1.0)}
+    q = jnp.asarray([math.tan(math.pi / 8), -1.0])  # the corner of walls 0 and 1
+    kin = kinematics(scene, fns, 0.0, q, jnp.asarray([1.0, 0.0]), args)
+    np.testing.assert_allclose(kin.gap, [0.0, 0.0], atol=1e-15)
+    held = jnp.asarray([[1.0, 1.0], [0.0, 1.0]])
+    e, every = jnp.zeros(2), jnp.ones(2, bool)
+    assert int(release_choice(kin, held, e, every, every)) == 1
+    dq, P, rates = impact_map(kin, held[0], e)
+    np.testing.assert_allclose(P, [-1.0, math.sqrt(2)], rtol=1e-14)
+    dq, P, rates = impact_map(kin, held[1], e)
+    np.testing.assert_allclose(dq, [0.5, 0.5], rtol=1e-14)
+    np.testing.assert_allclose(rates, [0.5, 0.0], atol=1e-15)
+    # Restitution 1 on the wall: the wall's rate is reversed, -(-s) = s, and the floor's is 1:
+    # both separate with nothing held but the wall, so the release is still the one taken.
+    dq, _, rates = impact_map(kin, held[1], jnp.asarray([0.0, 1.0]))
+    np.testing.assert_allclose(dq, [0.0, 1.0], atol=1e-15)
+    # The selection guards: the gap while positive, and beyond zero only where taken.
+    a = jnp.asarray([0.5, -0.5, -0.5])
+    np.testing.assert_array_equal(selection_guard(a, jnp.asarray([False, True, False])), [0.5, -0.5, 1.5])
+
+
+@functools.cache
+def _square_system():
+    """A point in a square (4 walls): free, single walls and corners, with selection guards."""
+    return hj.contact_system(examples.polygon_particle(4), ["free"], {"g": jnp.asarray(G), "r": jnp.asarray(1.0)})
+
+
+@pytest.mark.parametrize("name", ["square", "wedge"])
+def test_mask_evaluation_equals_the_modes_own_functions(name):
+    """The one masked evaluation of every mode (`ContactEvaluation`) against each mode's and
+    transition's own function, as the engines see them (`Kernels` with and without it): flows,
+    every watched value (selection guards included), resets, and the start test's Lie
+    derivatives, at states drawn across the scene's ranges."""
+    from hybridjax._definition.kernels import Kernels
+    from hybridjax._scenes.indexed import SELECTED
+
+    if name == "square":
+        system, args = _square_system(), {"g": jnp.asarray(G), "r": jnp.asarray(1.0)}
+        assert any(sp.kind == SELECTED for slots in system.evaluation.slots for sp in slots)
+    else:
+        system, args = WEDGES[3 * math.pi / 4], wedge_args(3 * math.pi / 4)
+    assert system.form == "mask" and system.mode_indexed() is system.evaluation
+    mask = Kernels(system, args)
+    own = Kernels(system, args)
+    own.indexed = None
+    n = system.scene.dim
+    rng = np.random.default_rng(1)
+    lo = np.asarray([-1.2] * n + [-3.0] * n)
+    xs = jnp.asarray(rng.uniform(lo, -lo, size=(64, 2 * n)))
+    # States on the walls and at rest too: where the selection guards read their choice.
+    xs = xs.at[:16, n:].set(0.0).at[16:32, 1].set(-1.0)
+
+    @jax.jit
+    def both(mode, x):
+        t = jnp.asarray(0.0)
+        out = []
+        for kern in (mask, own):
+            # Jets are defined for the mode's own watched functions (the others are masked).
+            own_w = kern.outgoing_mask(mode)
+            jets = [jnp.where(own_w, j, 0.0) for j in kern.guard_jets(mode, t, x, args, 1e-8, 1e-8, 1e-10)]
+            resets = jnp.stack([kern.reset(k, t, x, args) for k in range(system.num_transitions)])
+            out.append((kern.flow(mode, t, x, args), kern.guards(mode, t, x, args), resets, *jets))
+        return out
+
+    compared = 0
+    for m in range(system.num_modes):
+        a, b = jax.vmap(lambda x, m=m: both(jnp.asarray(m), x))(xs)
+        for u, v in zip(a, b, strict=True):
+            ok = np.isfinite(v)
+            np.testing.assert_array_equal(np.isfinite(u), ok)
+            np.testing.assert_allclose(u[ok], v[ok], rtol=1e-9, atol=1e-9 * (1 + np.max(np.abs(v[ok]), initial=0)))
+            compared += int(ok.sum())
+    assert compared > 1000

@@ -97,6 +97,10 @@ class Kernels:
         # (modes, slots): the watched function in each mode's slot (0 where the slot is unused).
         self.slot_watch = jnp.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
                                        for own in self.mode_watch], dtype=jnp.int32)
+        # Each watched function's slot in its own mode (`from_slots`).
+        self.watch_slot = [self.mode_watch[src].index(w) for w, (src, _) in enumerate(watch)]
+        # One evaluation for the traced mode, where the system has it (`ModeIndexed`).
+        self.indexed = system.mode_indexed()
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -105,6 +109,8 @@ class Kernels:
 
     def flow(self, mode, t, y, args) -> jax.Array:
         """F_mode(t, y) on the padded state (zeros beyond the mode's dim)."""
+        if self.indexed is not None:
+            return self.indexed.flow(mode, t, y, args)
         branches = [self.mode_flow(i) for i in range(self.system.num_modes)]
         return dispatch(mode, branches, t, y, args)
 
@@ -112,6 +118,8 @@ class Kernels:
         """Component i of `flow`, each mode's branch cut to it before the modes' selection (under
         `jax.vmap` the selection is elementwise; selecting whole vectors and then slicing left
         XLA a lanes-first (N, n) intermediate that it transposed at every stage)."""
+        if self.indexed is not None:
+            return self.indexed.flow(mode, t, y, args)[i]
         branches = [lambda t, y, args, b=b: self.mode_flow(b)(t, y, args)[i]
                     for b in range(self.system.num_modes)]
         return dispatch(mode, branches, t, y, args)
@@ -147,6 +155,8 @@ class Kernels:
         """
         if self.num_watch == 0:
             return jnp.zeros((0,), dtype=y.dtype)
+        if self.indexed is not None:
+            return self.from_slots(mode, self.indexed.watch(mode, t, y, args).astype(y.dtype), 1.0)
         g = jnp.stack(self._watched_values(mode, t, y, args))
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
 
@@ -155,6 +165,8 @@ class Kernels:
         values one by one: the (K + W,) vector is never formed, so that under `vmap` no
         (lanes, K + W) array is built, transposed and indexed (XLA:CPU did that for every guard
         sample of every step)."""
+        if self.indexed is not None:
+            return self.indexed.watch(mode, t, y, args).astype(y.dtype)
         return self._slots(mode, self._watched_values(mode, t, y, args), 1.0, y.dtype)
 
     def to_slots(self, mode, values, fill=1.0) -> jax.Array:
@@ -163,6 +175,13 @@ class Kernels:
         +1), so the engine that samples them at every step carries max_I (own of mode I) slots,
         not all K + W (Van der Pol with relay: 1 against 2, the thermostat: 4 against 8)."""
         return self._slots(mode, values, fill, values.dtype)
+
+    def from_slots(self, mode, slots, fill) -> jax.Array:
+        """(K + W,): the inverse of `to_slots`, watched function w reading its slot of `slots`
+        where it belongs to `mode` and `fill` elsewhere."""
+        out = [jnp.where(mode == src, slots[self.watch_slot[w]], fill)
+               for w, (src, _) in enumerate(self.watch)]
+        return jnp.stack(out) if out else jnp.zeros((0,), slots.dtype)
 
     def _slots(self, mode, values, fill, dtype) -> jax.Array:
         """Slot s of `mode`: values[mode_watch[mode][s]], `fill` where `mode` has fewer;
@@ -178,6 +197,8 @@ class Kernels:
 
     def reset(self, k, t, y, args) -> jax.Array:
         """R_k(t, y) on the padded state, transition index `k` traced."""
+        if self.indexed is not None:
+            return self.indexed.reset(k, t, y, args).astype(y.dtype)
 
         def branch(kk):
             tr = self.system.transitions[kk]
@@ -210,25 +231,15 @@ class Kernels:
         if K == 0:
             z = jnp.zeros((0,), dtype=y.dtype)
             return GuardJets(z, z, z, z, z, z)
+        if self.indexed is not None:
+            return self._indexed_jets(mode, t, y, args, rtol, atol, tol_t)
         out: dict[str, list] = {key: [] for key in GuardJets._fields}
         for src, fn in self.watch:
             active = mode == src
             tt, yy, aa = mask_inputs(active, (t, y, args))
             g = lambda t_, y_: fn(t_, y_, aa).astype(y.dtype)  # noqa: E731
             f = lambda t_, y_: self.mode_flow(src)(t_, y_, aa)  # noqa: E731
-
-            def lie(h):
-                # h(t, y) -> (L_j, (L_0, ..., L_{j-1})): L_{j+1} is the derivative of L_j
-                # along the flow; the lower orders ride along as jvp's aux, undifferentiated,
-                # so that L0..L3 come from one nested jvp (three separate ones, for L1, L2
-                # and L3, would trace and compile the nested flow derivatives three times).
-                def up(t_, y_):
-                    top, dtop, lower = jax.jvp(h, (t_, y_), (jnp.ones_like(t_), f(t_, y_)), has_aux=True)
-                    return dtop, (*lower, top)
-
-                return up
-
-            L3, (L0, L1, L2) = lie(lie(lie(lambda t_, y_: (g(t_, y_), ()))))(tt, yy)
+            L0, L1, L2, L3 = lie_derivatives(g, f, tt, yy)
             gt, gx = jax.grad(g, argnums=(0, 1))(tt, yy)
             F = f(tt, yy)
             out["L0"].append(L0)
@@ -240,3 +251,34 @@ class Kernels:
             out["scale1"].append(scale1)
         return GuardJets(**{key: jnp.stack(v) for key, v in out.items()})
 
+    def _indexed_jets(self, mode, t, y, args, rtol, atol, tol_t) -> GuardJets:
+        """`guard_jets` of a `ModeIndexed` system: the current mode's watched values and flow in
+        one evaluation each, their Lie derivatives by one nested jvp, mapped from slots to the
+        watched functions (`from_slots`; those of other modes read L0 = 1, the rest 0)."""
+        g = lambda t_, y_: self.indexed.watch(mode, t_, y_, args).astype(y.dtype)  # noqa: E731
+        f = lambda t_, y_: self.indexed.flow(mode, t_, y_, args)  # noqa: E731
+        L0, L1, L2, L3 = lie_derivatives(g, f, t, y)
+        gt, gx = jax.jacfwd(g, argnums=(0, 1))(t, y)  # (S,), (S, n)
+        F = f(t, y)
+        scale1 = jnp.abs(gt) + jnp.sum(jnp.abs(gx * F[None, :]), axis=-1)
+        band = jnp.sum(jnp.abs(gx) * (atol + rtol * jnp.abs(y))[None, :], axis=-1) + scale1 * tol_t
+        slots = GuardJets(L0, L1, L2, L3, band, scale1)
+        return GuardJets(*(self.from_slots(mode, v, 1.0 if i == 0 else 0.0) for i, v in enumerate(slots)))
+
+
+def lie_derivatives(g, f, t, y):
+    """L0..L3 of `g(t, y)` along the flow (t, y) -> (1, f(t, y)): L0 = g, L_{j+1} = d/dt L_j.
+
+    L_{j+1} is the derivative of L_j along the flow; the lower orders ride along as jvp's aux,
+    undifferentiated, so that L0..L3 come from one nested jvp (three separate ones, for L1, L2
+    and L3, would trace and compile the nested flow derivatives three times)."""
+
+    def lie(h):
+        def up(t_, y_):
+            top, dtop, lower = jax.jvp(h, (t_, y_), (jnp.ones_like(t_), f(t_, y_)), has_aux=True)
+            return dtop, (*lower, top)
+
+        return up
+
+    L3, (L0, L1, L2) = lie(lie(lie(lambda t_, y_: (g(t_, y_), ()))))(t, y)
+    return L0, L1, L2, L3

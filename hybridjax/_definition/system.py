@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._definition.indexed import ModeIndexed
 from .._definition.validation import check_function_shapes
 
 
@@ -329,6 +330,11 @@ class HybridSystem(eqx.Module):
     def outgoing(self, mode: int) -> tuple[int, ...]:
         """Indices of the transitions leaving `mode`, in priority order."""
         return tuple(k for k, s in enumerate(self.sources) if s == mode)
+
+    def mode_indexed(self) -> "ModeIndexed | None":
+        """The system's evaluation for a traced mode index (`ModeIndexed`), or None: the engines
+        then evaluate the modes' and transitions' own functions branch by branch."""
+        return None
 
     def check(self, args: Any = None, dtype: Any = None) -> None:
         """Run the shape checks with these `args` (raises ValueError naming the culprit).

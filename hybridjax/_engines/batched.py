@@ -333,9 +333,11 @@ class BatchedLoop:
         each output is already a lanes-last vector. Each component is cut from each mode's
         field before the modes' selection (`Kernels.flow_component`): selected whole, XLA
         keeps the (N, n) field. Above PER_COMPONENT_MAX_DIM components the field is traced
-        once, to keep the trace small; with one component it is the field itself.
+        once, to keep the trace small, and so is the field of a `ModeIndexed` system (one
+        evaluation for every mode, whose cost is its solve, not the layout of its output);
+        with one component it is the field itself.
         """
-        if self.kern.n == 1 or self.kern.n > PER_COMPONENT_MAX_DIM:
+        if self.kern.n == 1 or self.kern.n > PER_COMPONENT_MAX_DIM or self.kern.indexed is not None:
             F = self.lane_map(lambda m, tt, yy, a: self.kern.flow(m, tt, yy, a), mode, t, y, args=args)
             return F if scale is None else F * scale
         comps = [self.lane_map(lambda m, tt, yy, a, i=i: self.kern.flow_component(m, tt, yy, a, i),

@@ -46,8 +46,8 @@ import numpy as np
 from .._analysis.search import box_samples
 from .._core import small_linalg as small_linalg
 from .._definition.system import Mode, Transition
+from .mechanics import _INDEPENDENT, constraint_kinematics, impact, independence, rows
 from .scene import (
-    _INDEPENDENT,
     FREE,
     UNBUILT,
     UNILATERAL,
@@ -59,10 +59,6 @@ from .scene import (
     _search,
     _terminal_domain,
     _terminal_flow,
-    constraint_kinematics,
-    impact,
-    independence,
-    rows,
     witness_text,
 )
 
@@ -814,5 +810,5 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
         least_norm_modes=(False,) * len(modes),
         report=tuple(report),
         achievable=tuple(achievable),
-        form="mask",
+        form="branch",
     )

@@ -55,6 +55,20 @@ from jaxtyping import Array, Float
 from .._analysis.search import box_samples, find_point
 from .._core import small_linalg as small_linalg
 from .._definition.system import HybridSystem, Mode, Transition
+from .indexed import CONSTANT, FORCE, GAP, SELECTED, ContactEvaluation, ReleaseChoice, ResetSpec, SlotSpec
+from .mechanics import (
+    _INDEPENDENT,
+    _row_mask,
+    acceleration,
+    constrained_acceleration,
+    impact,
+    impact_map,
+    independence,
+    kinematics,
+    release_choice,
+    rows,
+    selection_guard,
+)
 
 UNILATERAL = "unilateral"
 BILATERAL = "bilateral"
@@ -306,93 +320,6 @@ def _identity(t, x, args):
     return x
 
 
-# ----------------------------------------------------------------------------- mechanics
-
-
-def _gaps(fns, t, q, args):
-    return jnp.stack([jnp.reshape(jnp.asarray(f(t, q, args), q.dtype), ()) for f in fns])
-
-
-def constraint_kinematics(fns, t, q, dq, args):
-    r"""Gaps $a$, Jacobian $J = \partial a / \partial q$, rates $\dot a$ and the bias
-    $c = \ddot a - J \ddot q$ (so that $\ddot a = 0$ is $J \ddot q = -c$), all by AD."""
-    t = jnp.asarray(t, q.dtype)
-    gap = lambda t_, q_: _gaps(fns, t_, q_, args)
-    J = jax.jacfwd(gap, argnums=1)(t, q)
-    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))[1]
-    adot, bias = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
-    return gap(t, q), J, adot, bias
-
-
-def kkt_solve(M, top, J, bottom, mask, least_norm=False):
-    r"""Solve $M u - J^\top \mathrm{diag}(m) \mu = $ `top`, $m_i (J u)_i + (1 - m_i) \mu_i = m_i$
-    `bottom`$_i$: the rows with mask 0 drop out ($\mu_i = 0$). With `least_norm`, close to the
-    least-norm $\mu$ for dependent rows (a regularised system, below).
-
-    Otherwise through the Schur complement ($M$ symmetric positive definite):
-    $u = M^{-1}(\text{top} + J_m^\top \mu)$ with
-    $(J_m M^{-1} J_m^\top + \mathrm{diag}(1 - m)) \mu = m \odot \text{bottom} - J_m M^{-1} \text{top}$,
-    $J_m = \mathrm{diag}(m) J$, both solved by `small_linalg.spd_solve`."""
-    n = M.shape[0]
-    Jm = mask[:, None] * J
-    if least_norm:
-        # (J u)_i + eps mu_i = bottom_i on the held rows: eliminating u leaves
-        # (J M^-1 J^T + eps I) mu = ..., whose solution tends to the least-norm mu of dependent
-        # rows as eps -> 0 (the held rates met to eps |mu|).
-        G = Jm @ small_linalg.spd_solve(M, Jm.T)
-        eps = 1e-10 * jnp.trace(G) / max(J.shape[0], 1)
-        K = jnp.block([[M, -Jm.T], [Jm, jnp.diag(1.0 - mask) + eps * jnp.diag(mask)]])
-        sol = small_linalg.solve(K, jnp.concatenate([top, mask * bottom]))
-        return sol[:n], sol[n:]
-    if Jm.shape[0] == 0:
-        return small_linalg.spd_solve(M, top), jnp.zeros((0,), top.dtype)
-    X = small_linalg.spd_solve(M, jnp.concatenate([top[:, None], Jm.T], axis=1))
-    v, W = X[:, 0], X[:, 1:]  # M^-1 top, M^-1 J_m^T
-    mu = small_linalg.spd_solve(Jm @ W + jnp.diag(1.0 - mask), mask * bottom - Jm @ v)
-    return v + W @ mu, mu
-
-
-def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False):
-    r"""$\ddot q$ and $\lambda$ of the constraints `fns` held where `mask` is 1:
-    $M \ddot q = f + J^\top \lambda$, $J \ddot q = -c$ on the held rows."""
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
-    if not fns:
-        return small_linalg.spd_solve(M, f), jnp.zeros((0,), q.dtype)
-    _, J, _, bias = constraint_kinematics(fns, t, q, dq, args)
-    return kkt_solve(M, f, J, -bias, mask, least_norm)
-
-
-def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
-    r"""The impact on the constraints `fns` held where `held` is 1: $\dot q^+ = \dot q^- + M^{-1}
-    J^\top P$ with $J_i \dot q^+ = -e_i J_i \dot q^-$ on the held rows and $P_i = 0$ on the others.
-    Returns $\dot q^+$, $P$ and the rates $J \dot q^+$."""
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    _, J, adot, _ = constraint_kinematics(fns, t, q, dq, args)
-    # Rates include any explicit time dependence: J dq+ + a_t = -e (J dq- + a_t).
-    a_t = adot - J @ dq
-    dq_plus, P = kkt_solve(M, M @ dq, J, -e * adot - (1.0 + e) * a_t, held, least_norm)
-    return dq_plus, P, J @ dq_plus + a_t
-
-
-def independence(scene, fns, held, t, q, args):
-    r"""$\min_j d_j / \max_j G_{jj}$, $d_j$ the pivots ($L_{jj}^2$) of the Cholesky factor of
-    the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
-    NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
-    pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
-    as `kkt_solve` (no LAPACK call per lane)."""
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
-    G = J @ small_linalg.spd_solve(M, J.T)
-    G = held[:, None] * held[None, :] * G + jnp.diag(1.0 - held)
-    L = small_linalg.cholesky(0.5 * (G + G.T))
-    pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
-    return jnp.min(pivots) / jnp.max(jnp.diag(G))
-
-
-_INDEPENDENT = 1e-9  # `independence` below this: dependent
-
-
 # ----------------------------------------------------------------------------- contact sets
 
 
@@ -401,22 +328,6 @@ def set_name(scene: Scene, contact_set) -> str:
     if not contact_set:
         return FREE
     return "+".join(scene.constraints[i].name for i in sorted(contact_set))
-
-
-def rows(scene: Scene, members) -> tuple[tuple, tuple]:
-    """The rows of the constraints `members` (indices, in order): their gaps, then the
-    tangential coordinates of those that stick. Returns (functions, owners): row r belongs to
-    constraint owners[r]; row i < len(members) is the gap of members[i]."""
-    sticky = [k for k in members if scene.constraints[k].tangent is not None]
-    fns = tuple(scene.constraints[k].fn for k in members) + tuple(
-        scene.constraints[k].tangent for k in sticky
-    )
-    return fns, tuple(members) + tuple(sticky)
-
-
-def _row_mask(owners, members_mask, dtype):
-    """A mask over rows from one over constraints (indexed by constraint)."""
-    return jnp.asarray(members_mask, dtype)[np.asarray(owners, dtype=int)]
 
 
 def _releases(held_unilateral):
@@ -470,25 +381,26 @@ class _Impact(eqx.Module):
             self.least_norm,
         )
 
-    def valid(self, c, t, x, args):
-        """Whether candidate `c` solves the impact: held impulses >= 0, released rates >= 0, and
-        the held constraints independent."""
-        _, P, rates = self.outcome(c, t, x, args)
-        held = self.held(c, x.dtype)
-        m = len(self.order)  # the gaps' rows: impulses and separation are judged on these
-        scale = 1.0 + jnp.max(jnp.abs(P))
-        ok_P = jnp.all(jnp.where(held[:m] > 0, P[:m] >= -1e-9 * scale, True))
-        tol_v = 1e-9 * (1.0 + jnp.max(jnp.abs(rates)))
-        ok_v = jnp.all(jnp.where(held[:m] > 0, True, rates[:m] >= -tol_v))
-        ok_i = independence(self.scene, self.fns(), held, t, x[: self.scene.dim], args) > _INDEPENDENT
-        return ok_P & ok_v & (ok_i | self.least_norm)
-
     def select(self, t, x, args):
-        """The index of the first valid candidate, -1 if none."""
-        choice = jnp.array(-1, jnp.int32)
-        for c in reversed(range(len(self.candidates))):
-            choice = jnp.where(self.valid(c, t, x, args), c, choice)
-        return choice
+        """The index of the first candidate that solves the impact, -1 if none
+        (`mechanics.release_choice`)."""
+        n, dtype = self.scene.dim, x.dtype
+        num_rows = len(self.fns())
+        kin = kinematics(self.scene, self.fns(), t, x[:n], x[n:], args)
+        held = jnp.stack([self.held(c, dtype) for c in range(len(self.candidates))])
+        gap_rows = jnp.arange(num_rows) < len(self.order)
+        return release_choice(kin, held, self._e(args, dtype), jnp.ones(num_rows, bool), gap_rows,
+                              self.least_norm)
+
+    def choice(self) -> ReleaseChoice:
+        """`select` on the rows of all the scene's constraints, for `ContactEvaluation`."""
+        _, owners = rows(self.scene, range(len(self.scene.constraints)))
+        return ReleaseChoice(
+            held=tuple(tuple(float(o in self.order and o not in R) for o in owners) for R in self.candidates),
+            hit=self.k,
+            involved=tuple(o in self.order for o in owners),
+            gap_rows=tuple(o in self.order and r < len(self.scene.constraints) for r, o in enumerate(owners)),
+        )
 
     def guard(self, chosen: tuple):
         """a_k where the selected candidate is in `chosen`, positive elsewhere."""
@@ -500,10 +412,15 @@ class _Impact(eqx.Module):
             a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
             # Which outcome holds is a discrete choice: no derivative flows through it.
             sel = self.select(*jax.lax.stop_gradient((t, x, args)))
-            hit = jnp.any(jnp.stack([sel == c for c in chosen])) if chosen else False
-            return jnp.where(hit, a, jnp.abs(a) + 1.0)
+            return selection_guard(a, jnp.any(jnp.stack([sel == c for c in chosen] + [False])))
 
         return g
+
+    def slot(self, chosen: tuple) -> SlotSpec:
+        """`guard(chosen)` as `ContactEvaluation` reads it."""
+        if len(chosen) == len(self.candidates):
+            return SlotSpec(GAP, self.k)
+        return SlotSpec(SELECTED, self.k, choice=self.choice(), chosen=chosen)
 
     def reset(self, c):
         n = self.scene.dim
@@ -522,25 +439,18 @@ class _Impact(eqx.Module):
 
 
 class _ModeFunctions(eqx.Module):
-    """Flow and contact forces of contact set `held` (sorted indices), `form` "branch" (solve
-    with the held constraints only) or "mask" (all constraints, the others masked out)."""
+    """Flow and contact forces of contact set `held` (sorted indices), solved with the held
+    constraints only (the mode's own functions; `ContactEvaluation` solves with all rows,
+    masked, for a traced mode)."""
 
     scene: Scene = eqx.field(static=True)
     held: tuple = eqx.field(static=True)
-    form: str = eqx.field(static=True)
     least_norm: bool = eqx.field(static=True)
-
-    def _fns_mask(self, dtype):
-        if self.form == "mask":
-            K = len(self.scene.constraints)
-            fns, owners = rows(self.scene, range(K))
-            return fns, _row_mask(owners, [1.0 if i in self.held else 0.0 for i in range(K)], dtype)
-        fns, _ = rows(self.scene, self.held)
-        return fns, jnp.ones(len(fns), dtype)
 
     def solve(self, t, x, args):
         n = self.scene.dim
-        fns, mask = self._fns_mask(x.dtype)
+        fns, _ = rows(self.scene, self.held)
+        mask = jnp.ones(len(fns), x.dtype)
         return constrained_acceleration(self.scene, fns, mask, t, x[:n], x[n:], args, self.least_norm)
 
     def flow(self, t, x, args):
@@ -549,7 +459,7 @@ class _ModeFunctions(eqx.Module):
 
     def force(self, j, offset=0.0):
         """lambda_j + offset, the force of held constraint j (a lift-off guard)."""
-        pos = j if self.form == "mask" else self.held.index(j)
+        pos = self.held.index(j)
         return lambda t, x, args: self.solve(t, x, args)[1][pos] + offset
 
 
@@ -588,12 +498,13 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         args, Q = p
         q, dq = x[:n], x[n:]
         held_rows = _row_mask(owners, Q.held, x.dtype)
-        a, _, adot, _ = constraint_kinematics(fns, t, q, dq, args)
-        _, lam = constrained_acceleration(scene, fns, held_rows, t, q, dq, args, least_norm)
+        kin = kinematics(scene, fns, t, q, dq, args)
+        a, adot = kin.gap, kin.adot
+        _, lam = acceleration(kin, held_rows, least_norm)
         e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
         impact_rows = _row_mask(owners, Q.impact_held, x.dtype)
-        _, P, rates = impact(scene, fns, impact_rows, e, t, q, dq, args, least_norm)
+        _, P, rates = impact_map(kin, impact_rows, e, least_norm)
         a, adot_gap, lam, P, rates = a[:K], adot[:K], lam[:K], P[:K], rates[:K]
         uni = jnp.asarray(unilateral, x.dtype)
         eq = jnp.concatenate([Q.held * a, held_rows * adot, Q.hit * a])
@@ -659,10 +570,12 @@ class ContactSystem(HybridSystem):
     report: tuple = eqx.field(static=True)
     achievable: tuple = eqx.field(static=True)
     form: str = eqx.field(static=True)
+    evaluation: ContactEvaluation | None = eqx.field(static=True)
 
     def __init__(
-        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form
-    ):
+        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
+        evaluation=None,
+    ):  # fmt: skip
         super().__init__(modes, transitions)
         self.scene = scene
         self.contact_sets = contact_sets
@@ -670,6 +583,11 @@ class ContactSystem(HybridSystem):
         self.report = report
         self.achievable = achievable
         self.form = form
+        self.evaluation = evaluation
+
+    def mode_indexed(self) -> ContactEvaluation | None:
+        """The one masked evaluation for a traced mode (`form="mask"`), or None (`"branch"`)."""
+        return self.evaluation
 
     @property
     def force_names(self) -> tuple[str, ...]:
@@ -768,7 +686,7 @@ def contact_system(
     tol: float = 1e-14,
     seed: int = 0,
     redundant: str = "error",
-    form: str = "branch",
+    form: str = "mask",
     max_modes: int = 64,
     relabels: Sequence[Relabel] = (),
 ) -> ContactSystem:
@@ -796,8 +714,13 @@ def contact_system(
       lift-off that a witness must show, in the scene's units.
     - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
       naming them) or `"least_norm"` (its contact forces are the least-norm solution).
-    - `form`: `"branch"` (each mode solves with its held constraints only) or `"mask"` (every
-      mode solves with all constraints, those not held masked out).
+    - `form`: `"mask"` (the default: the engines evaluate the system for the current mode in
+      one solve with all constraints, those not held masked out, `ContactEvaluation`; the
+      cost of a step and of its compile does not grow with the modes built) or `"branch"`
+      (each mode's and each transition's own function, evaluated and selected under
+      `jax.vmap`: every mode's solve in every step). Both give the same executions to
+      rounding; the mask is faster to compile and to run (docs: Scenes, "What it costs").
+      A scene with friction is built in the branch form.
     - `max_modes`: a build that would exceed this many modes stops with an error.
     - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
       set goes to its `target` set, the state relabelled).
@@ -950,7 +873,16 @@ def contact_system(
     # Assemble: built modes, then terminal modes for unbuilt targets.
     order = list(built)
     modes, transitions, achievable = [], [], []
-    mode_fns = {A: _ModeFunctions(scene, tuple(sorted(A)), form, built[A]) for A in order}
+    mode_fns = {A: _ModeFunctions(scene, tuple(sorted(A)), built[A]) for A in order}
+    # Per transition, in order: its watched function and reset as `ContactEvaluation` reads them.
+    slot_specs, reset_specs = [], []
+    relabel_maps = list(dict.fromkeys(m for _, m in relabel_of.values()))
+
+    def spec(slot, held=None, hit=0, relabel_map=None):
+        slot_specs.append(slot)
+        r = -1 if relabel_map is None else relabel_maps.index(relabel_map)
+        reset_specs.append(ResetSpec(None if held is None else tuple(sorted(held)), hit, r))
+
     names = scene.names or tuple(f"q[{i}]" for i in range(n))
     comp = tuple(names) + tuple(f"d{s}" for s in names)
     for A in order:
@@ -983,6 +915,8 @@ def contact_system(
                                 name=f"impact {cname}: {src} -> {set_name(scene, tgt)}",
                             )
                         )
+                        held = (set(imp.source) | {j}) - set(imp.candidates[c])
+                        spec(imp.slot((c,)), held=held, hit=j, relabel_map=relabel_map)
                         achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
                     else:
                         released = [scene.constraints[i].name for i in imp.candidates[c]]
@@ -1000,6 +934,7 @@ def contact_system(
                             src, term, guard=imp.guard(others), name=f"impact {cname}: {src} -> {term}"
                         )
                     )
+                    spec(imp.slot(others))
             else:
                 c, T, ok, text = items[0]
                 if ok:
@@ -1014,6 +949,7 @@ def contact_system(
                             name=f"lift-off {cname}: {src} -> {set_name(scene, tgt)}",
                         )
                     )
+                    spec(SlotSpec(FORCE, j), relabel_map=relabel_map)
                     achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
                 else:
                     term = UNBUILT + set_name(scene, T)
@@ -1029,6 +965,7 @@ def contact_system(
                             name=f"lift-off {cname}: {src} -> {term}",
                         )
                     )
+                    spec(SlotSpec(FORCE, j, margin))
                     pruned_lines.append(
                         f"  pruned: lift-off of {cname} in {src} -> {set_name(scene, T)}: {text}"
                     )
@@ -1064,6 +1001,25 @@ def contact_system(
 
     contact_sets = tuple(tuple(scene.constraints[i].name for i in sorted(A)) for A in order)
     contact_sets = contact_sets + (None,) * len(terminals)
+    evaluation = None
+    if form == "mask":
+        # Slots in the engine's order: each mode's transitions in index order, then a terminal
+        # mode's one domain component (-1).
+        names = [m.name for m in modes]
+        sources = [names.index(tr.source) for tr in transitions]
+        slots = [
+            tuple(slot_specs[i] for i, m_ in enumerate(sources) if m_ == m)
+            + ((SlotSpec(CONSTANT, offset=-1.0),) if m >= len(order) else ())
+            for m in range(len(modes))
+        ]
+        evaluation = ContactEvaluation(
+            scene=scene,
+            mode_sets=tuple(tuple(sorted(A)) for A in order) + (None,) * len(terminals),
+            slots=tuple(slots),
+            resets=tuple(reset_specs),
+            relabel_maps=tuple(relabel_maps),
+            least_norm=least_norm,
+        )
     return ContactSystem(
         modes,
         transitions,
@@ -1073,4 +1029,5 @@ def contact_system(
         report=tuple(report),
         achievable=tuple(achievable),
         form=form,
+        evaluation=evaluation,
     )

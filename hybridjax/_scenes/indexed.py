@@ -1,0 +1,200 @@
+r"""A contact system evaluated for the traced mode index: one masked solve, whatever the modes.
+
+Every mode of a contact system is the same constrained dynamics with the mask of its contact
+set $A$ over the scene's rows $r$ (the constraints' gaps, then the tangents of those that
+stick): the KKT system $M \ddot q = f + J^\top \lambda$, $m_r (J \ddot q + c)_r = 0$,
+$(1 - m_r) \lambda_r = 0$ with $m = \mathbb{1}_A$ (`mechanics.kkt_solve`). So is every guard
+(a gap $a_k$, or a contact force $\lambda_j$ of the same solve) and every reset (the impact
+map with the mask of the new set, or the identity). `ContactEvaluation` looks the mask,
+the guard of each slot and the reset of each transition up in tables by the traced index
+and solves once, where the engines would otherwise evaluate every mode's and every
+transition's function and select one: the cost of a step, and of compiling it, is that of
+one solve with all $K$ constraints, not of one per mode built.
+"""
+
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from .._definition.indexed import ModeIndexed
+from .mechanics import (
+    _row_mask,
+    acceleration,
+    impact_map,
+    kinematics,
+    release_choice,
+    rows,
+    selection_guard,
+)
+
+# Where a slot's value comes from: a gap, a contact force, a constant, or a selection guard.
+GAP, FORCE, CONSTANT, SELECTED = "gap", "force", "constant", "selected"
+
+
+class ReleaseChoice(eqx.Module):
+    """An impact's release candidates on the rows of all the scene's constraints, as
+    `mechanics.release_choice` takes them: per candidate the rows held, the impacting
+    constraint `hit` (its restitution on its gap row), the rows of the constraints involved
+    and their gap rows."""
+
+    held: tuple = eqx.field(static=True)
+    hit: int = eqx.field(static=True)
+    involved: tuple = eqx.field(static=True)
+    gap_rows: tuple = eqx.field(static=True)
+
+
+class SlotSpec(eqx.Module):
+    """One watched function of a mode: `kind` GAP (constraint `index`'s gap), FORCE (row
+    `index`'s contact force plus `offset`), CONSTANT (`offset`), or SELECTED (constraint
+    `index`'s gap where the impact's `choice`, a candidate index, is in `chosen`, and
+    |gap| + 1 elsewhere: the impacts that share one guard $a_k \\le 0$ and differ in which
+    contacts the impact releases)."""
+
+    kind: str = eqx.field(static=True)
+    index: int = eqx.field(static=True, default=0)
+    offset: float = eqx.field(static=True, default=0.0)
+    choice: ReleaseChoice | None = eqx.field(static=True, default=None)
+    chosen: tuple = eqx.field(static=True, default=())
+
+
+class ResetSpec(eqx.Module):
+    """The reset of one transition: the impact of constraint `hit` with the rows of the
+    constraints `held` held (None: the identity), then relabelling map `relabel` (an index
+    into `ContactEvaluation.relabel_maps`, -1 for none)."""
+
+    held: tuple | None = eqx.field(static=True, default=None)
+    hit: int = eqx.field(static=True, default=0)
+    relabel: int = eqx.field(static=True, default=-1)
+
+
+class ContactEvaluation(ModeIndexed):
+    r"""The flows, watched functions and resets of a contact system for a traced index.
+
+    - `mode_sets`: per mode, its held constraints (indices), None for a terminal mode (flow 0);
+    - `slots`: per mode, its watched functions in the engine's order (`SlotSpec`);
+    - `resets`: per transition, `ResetSpec`;
+    - `least_norm`: least-norm contact forces (regularised solve) in every mode.
+    """
+
+    scene: object = eqx.field(static=True)
+    mode_sets: tuple = eqx.field(static=True)
+    slots: tuple = eqx.field(static=True)
+    resets: tuple = eqx.field(static=True)
+    relabel_maps: tuple = eqx.field(static=True)
+    least_norm: bool = eqx.field(static=True)
+
+    # ------------------------------------------------------------------ tables
+    def _rows(self):
+        return rows(self.scene, range(len(self.scene.constraints)))
+
+    def _mode_masks(self, dtype) -> jax.Array:
+        """(modes, rows): 1 on the rows of each mode's held constraints."""
+        K = len(self.scene.constraints)
+        _, owners = self._rows()
+        table = [[0.0 if s is None or i not in s else 1.0 for i in range(K)] for s in self.mode_sets]
+        return jnp.stack([_row_mask(owners, row, dtype) for row in table])
+
+    def _kinematics(self, t, y, args):
+        n = self.scene.dim
+        return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
+
+    def _restitution(self, args, dtype) -> jax.Array:
+        """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
+        e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
+        return jnp.concatenate([e, jnp.zeros(len(self._rows()[0]) - e.shape[0], dtype)])
+
+    # ------------------------------------------------------------------ ModeIndexed
+    def flow(self, mode, t, y, args) -> jax.Array:
+        n = self.scene.dim
+        kin = self._kinematics(t, y, args)
+        ddq, _ = acceleration(kin, self._mode_masks(y.dtype)[mode], self.least_norm)
+        terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
+        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
+
+    def watch(self, mode, t, y, args) -> jax.Array:
+        K = len(self.scene.constraints)
+        kin = self._kinematics(t, y, args)
+        _, lam = acceleration(kin, self._mode_masks(y.dtype)[mode], self.least_norm)
+        gaps = kin.gap[:K]
+        # Every impact's choice in one vmapped call, whichever slots read it, and only where
+        # one of the current mode's selection guards is at or below zero, where it is read
+        # (`selection_guard`): under `jax.vmap`, where one execution needs it.
+        selected = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs if sp.kind == SELECTED]
+        choices = list(dict.fromkeys(
+            (sp.choice.held, sp.choice.hit, sp.choice.involved, sp.choice.gap_rows) for _, sp in selected))
+        if choices:
+            need = jnp.any(jnp.stack([(mode == m) & (gaps[sp.index] <= 0) for m, sp in selected]))
+            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(kin, choices, args, y.dtype),
+                             lambda: jnp.full((len(choices),), -1, jnp.int32))
+        values = [gaps, lam]
+        base = K + lam.shape[0]
+        source, offset = [], []
+        for specs in self.slots:
+            src_row, off_row = [], []
+            for spec in specs:
+                if spec.kind == GAP:
+                    src_row.append(spec.index)
+                elif spec.kind == FORCE:
+                    src_row.append(K + spec.index)
+                elif spec.kind == SELECTED:
+                    ch = spec.choice
+                    pick = picks[choices.index((ch.held, ch.hit, ch.involved, ch.gap_rows))]
+                    taken = jnp.any(jnp.stack([pick == c for c in spec.chosen] + [False]))
+                    values.append(selection_guard(gaps[spec.index], taken)[None])
+                    src_row.append(base)
+                    base += 1
+                else:  # CONSTANT: `offset` on the zero at the end of `values`
+                    src_row.append(-1)
+                off_row.append(spec.offset)
+            source.append(src_row)
+            offset.append(off_row)
+        S = max(map(len, self.slots), default=0)
+        values = jnp.concatenate([*values, jnp.zeros((1,), y.dtype)])
+        # Unused slots read 0 + 1.
+        source = np.asarray([r + [-1] * (S - len(r)) for r in source], dtype=np.int32) % values.shape[0]
+        offset = np.asarray([r + [1.0] * (S - len(r)) for r in offset])
+        return values[jnp.asarray(source)[mode]] + jnp.asarray(offset, y.dtype)[mode]
+
+    def _choices(self, kin, choices, args, dtype):
+        """`release_choice` of each impact in `choices` ((held, hit, involved, gap_rows) tuples)
+        at the state of `kin`, without gradients: (P,) candidate indices, one vmapped call over
+        the impacts (candidate tables padded)."""
+        if not choices:
+            return jnp.zeros((0,), jnp.int32)
+        R = len(choices[0][2])
+        C = max(len(ch[0]) for ch in choices)
+        held = np.zeros((len(choices), C, R))
+        present = np.zeros((len(choices), C), bool)
+        for p, ch in enumerate(choices):
+            held[p, : len(ch[0])] = ch[0]
+            present[p, : len(ch[0])] = True
+        hit = np.asarray([[float(r == ch[1]) for r in range(R)] for ch in choices])
+        e = lax.stop_gradient(self._restitution(args, dtype))
+        kin = lax.stop_gradient(kin)
+
+        def one(held, present, hit, involved, gap_rows):
+            return release_choice(kin, held, e * hit, involved, gap_rows, self.least_norm, present)
+
+        return jax.vmap(one)(jnp.asarray(held, dtype), jnp.asarray(present), jnp.asarray(hit, dtype),
+                             jnp.asarray([ch[2] for ch in choices]), jnp.asarray([ch[3] for ch in choices]))
+
+    def reset(self, k, t, y, args) -> jax.Array:
+        n = self.scene.dim
+        _, owners = self._rows()
+        specs = self.resets
+        held = np.asarray([[float(r.held is not None and o in r.held) for o in owners] for r in specs])
+        is_impact = np.asarray([r.held is not None for r in specs])
+        hit = np.asarray([[float(r.held is not None and i == r.hit) for i in range(len(owners))]
+                          for r in specs])
+        e = jnp.asarray(hit, y.dtype)[k] * self._restitution(args, y.dtype)
+        kin = self._kinematics(t, y, args)
+        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, self.least_norm)
+        x = jnp.concatenate([y[:n], jnp.where(jnp.asarray(is_impact)[k], dq_plus, y[n:])])
+        if not self.relabel_maps:
+            return x
+        which = jnp.asarray([r.relabel + 1 for r in specs], jnp.int32)[k]
+        branches = [lambda t, x, args: x, *self.relabel_maps]
+        return lax.switch(which, branches, t, x, args)
