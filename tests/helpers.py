@@ -98,3 +98,41 @@ def ball_reference(h0, v0, g, e, t1):
 
 def as_f64(x):
     return jnp.asarray(x, dtype=jnp.float64)
+
+
+def evaluations_agree(system, args, xs, rtol=1e-9) -> int:
+    """Check a mode-indexed system's one evaluation per call (`system.mode_indexed()`) against
+    its modes' and transitions' own functions, as the engines see them (`Kernels` with and
+    without it), at the states `xs` (num, n) in every mode: flows, every watched value, every
+    reset and the start test's Lie derivatives of the mode's own watched functions. Returns
+    the number of finite values compared."""
+    from hybridjax._definition.kernels import Kernels
+
+    mask = Kernels(system, args)
+    own = Kernels(system, args)
+    own.indexed = None
+    assert mask.indexed is not None
+
+    @jax.jit
+    def both(mode, x):
+        t = jnp.asarray(0.0)
+        out = []
+        for kern in (mask, own):
+            # Jets are defined for the mode's own watched functions (the others are masked).
+            mine = kern.outgoing_mask(mode)
+            jets = [jnp.where(mine, j, 0.0) for j in kern.guard_jets(mode, t, x, args, 1e-8, 1e-8, 1e-10)]
+            resets = jnp.stack([kern.reset(k, t, x, args) for k in range(system.num_transitions)])
+            out.append((kern.flow(mode, t, x, args), kern.guards(mode, t, x, args), resets, *jets))
+        return out
+
+    compared = 0
+    for m in range(system.num_modes):
+        a, b = jax.vmap(lambda x, m=m: both(jnp.asarray(m), x))(xs)
+        for u, v in zip(a, b, strict=True):
+            u, v = np.asarray(u), np.asarray(v)
+            ok = np.isfinite(v)
+            np.testing.assert_array_equal(np.isfinite(u), ok)
+            scale = 1 + np.max(np.abs(v[ok]), initial=0)
+            np.testing.assert_allclose(u[ok], v[ok], rtol=rtol, atol=rtol * scale)
+            compared += int(ok.sum())
+    return compared

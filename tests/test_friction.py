@@ -12,6 +12,8 @@ import pytest
 import hybridjax as hj
 from hybridjax import examples
 
+from helpers import evaluations_agree
+
 TIGHT = diffrax.PIDController(rtol=1e-11, atol=1e-11)
 G, MU = 9.81, 0.5
 
@@ -111,6 +113,19 @@ def test_block_stops_on_flat_ground_at_v0_over_mu_g():
 
 
 # ----------------------------------------------------------------------------- definitions
+
+
+def test_mask_evaluation_equals_the_modes_own_functions():
+    """The block's one masked evaluation per call (`FrictionEvaluation`: stick and slip modes,
+    cone, stop and Painleve guards, impacts with their outcome) against its modes' and
+    transitions' own functions, at states across the scene's ranges, at rest and in contact."""
+    assert BLOCK.form == "mask" and BLOCK.mode_indexed() is BLOCK.evaluation
+    rng = np.random.default_rng(2)
+    xs = rng.uniform([-1.0, -0.5, -3.0, -3.0], [1.0, 0.5, 3.0, 3.0], size=(48, 4))
+    xs[:12, 1] = 0.0  # on the floor
+    xs[:6, 3] = 0.0  # on it at rest (normal rate 0)
+    xs[6:12, 2:] = 0.0  # at rest: the stop guards' choice is read
+    assert evaluations_agree(BLOCK, block_args(0.3), jnp.asarray(xs)) > 500
 
 
 def test_negative_friction_coefficient_is_named():

@@ -38,15 +38,28 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+from jax import lax
 
 from .._analysis.search import box_samples
 from .._core import small_linalg as small_linalg
+from .._definition.indexed import ModeIndexed
 from .._definition.system import Mode, Transition
-from .mechanics import _INDEPENDENT, constraint_kinematics, impact, independence, rows
+from .indexed import _by_mode
+from .mechanics import (
+    _INDEPENDENT,
+    impact,
+    impact_candidate,
+    impact_map,
+    independence,
+    kinematics,
+    rows,
+    selection_guard,
+)
 from .scene import (
     FREE,
     UNBUILT,
@@ -151,39 +164,47 @@ def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=Fal
 
     `least_norm`: nearly the least-norm forces (`_regularised_solve`), for more held rows than
     coordinates: two sticking contacts of one rigid body share a tangential force they do not
-    determine. Every solve is written as array operations (`small_linalg`), no LAPACK call."""
-    fns, _, tan, _, _ = _layout(scene)
+    determine (a traced 0/1 factor selects it per mode; `"search"`: always). Every solve is
+    written as array operations (`small_linalg`), no LAPACK call."""
+    kin = kinematics(scene, _layout(scene)[0], t, q, dq, args)
+    ddq, lam = friction_acceleration(scene, kin, friction_coefficients(scene, args, q.dtype), rows_mask, sign,
+                                     least_norm)
+    return ddq, lam, kin.J, kin.adot, kin.bias
+
+
+def friction_acceleration(scene: Scene, kin, mu, rows_mask, sign, least_norm=False):
+    """`friction_solve` from the state's `mechanics.Kinematics` (all rows) and coefficients."""
+    _, _, tan, _, _ = _layout(scene)
     K, n = len(scene.constraints), scene.dim
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
-    _, J, rate, bias = constraint_kinematics(fns, t, q, dq, args)
-    slip = friction_coefficients(scene, args, q.dtype) * sign
-    W = J.at[:K].add(-slip[:, None] * (jnp.asarray(tan, q.dtype) @ J))
+    J = kin.J
+    slip = mu * sign
+    W = J.at[:K].add(-slip[:, None] * (jnp.asarray(tan, J.dtype) @ J))
     m = rows_mask
-    lhs = jnp.block([[M, -(m[:, None] * W).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
-    rhs = jnp.concatenate([f, -m * bias])
-    sol = _regularised_solve(lhs, rhs, m, n) if least_norm else small_linalg.solve(lhs, rhs)
-    return sol[:n], sol[n:], J, rate, bias
+    lhs = jnp.block([[kin.M, -(m[:, None] * W).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
+    rhs = jnp.concatenate([kin.f, -m * kin.bias])
+    if least_norm is False:
+        sol = small_linalg.solve(lhs, rhs)
+    else:
+        sol = _regularised_solve(lhs, rhs, m, n, 1.0 if isinstance(least_norm, (bool, str)) else least_norm)
+    return sol[:n], sol[n:]
 
 
-def _regularised_solve(lhs, rhs, m, n):
+def _regularised_solve(lhs, rhs, m, n, factor=1.0):
     r"""A KKT solve with $-\epsilon$ on the held rows' diagonal ($\epsilon = 10^{-10}$ of the
-    system's scale), so that dependent rows give nearly least-norm forces; elimination written
-    as array operations (`small_linalg.solve`, no LAPACK call)."""
-    eps = 1e-10 * jnp.max(jnp.abs(lhs[n:, :n])) ** 2 / jnp.max(jnp.abs(jnp.diag(lhs)[:n]))
+    system's scale, times `factor`), so that dependent rows give nearly least-norm forces;
+    elimination written as array operations (`small_linalg.solve`, no LAPACK call)."""
+    eps = 1e-10 * jnp.max(jnp.abs(lhs[n:, :n])) ** 2 / jnp.max(jnp.abs(jnp.diag(lhs)[:n])) * factor
     return small_linalg.solve(lhs.at[n:, n:].add(-eps * jnp.diag(m)), rhs)
 
 
-def _search_impact(scene: Scene, held_rows, e, t, q, dq, args):
-    r"""`impact` with the search's solve: $(P, J \dot q^+ + a_t)$."""
-    fns = _layout(scene)[0]
-    n = scene.dim
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    _, J, adot, _ = constraint_kinematics(fns, t, q, dq, args)
+def _search_impact(kin, held_rows, e, n):
+    r"""The impact map with the search's regularised solve, from the state's `Kinematics`:
+    $(P, J \dot q^+ + a_t)$."""
+    J, adot, dq = kin.J, kin.adot, kin.dq
     a_t = adot - J @ dq
     m = held_rows
-    lhs = jnp.block([[M, -(m[:, None] * J).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
-    rhs = jnp.concatenate([M @ dq, m * (-e * adot - (1.0 + e) * a_t)])
+    lhs = jnp.block([[kin.M, -(m[:, None] * J).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
+    rhs = jnp.concatenate([kin.M @ dq, m * (-e * adot - (1.0 + e) * a_t)])
     sol = _regularised_solve(lhs, rhs, m, n)
     return sol[n:], J @ sol[:n] + a_t
 
@@ -191,15 +212,54 @@ def _search_impact(scene: Scene, held_rows, e, t, q, dq, args):
 def slip_consistency(scene: Scene, rows_mask, sign, t, q, args):
     r"""$\det(J M^{-1} W^\top)$ on the held rows (1 on the others): positive without friction;
     where it reaches 0 the slip mode's contact forces are undetermined (Painleve's paradox)."""
-    fns, _, tan, _, _ = _layout(scene)
-    K = len(scene.constraints)
-    M = jnp.asarray(scene.mass(q, args), q.dtype)
-    _, J, _, _ = constraint_kinematics(fns, t, q, jnp.zeros_like(q), args)
-    slip = friction_coefficients(scene, args, q.dtype) * sign
-    W = J.at[:K].add(-slip[:, None] * (jnp.asarray(tan, q.dtype) @ J))
+    kin = kinematics(scene, _layout(scene)[0], t, q, jnp.zeros_like(q), args)
+    return consistency(scene, kin, friction_coefficients(scene, args, q.dtype), rows_mask, sign)
+
+
+def consistency(scene: Scene, kin, mu, rows_mask, sign):
+    """`slip_consistency` from the state's `mechanics.Kinematics` (all rows)."""
+    tan = _layout(scene)[2]
+    K, J = len(scene.constraints), kin.J
+    W = J.at[:K].add(-(mu * sign)[:, None] * (jnp.asarray(tan, J.dtype) @ J))
     m = rows_mask
-    G = m[:, None] * m[None, :] * (J @ small_linalg.spd_solve(M, W.T)) + jnp.diag(1.0 - m)
+    G = m[:, None] * m[None, :] * (J @ small_linalg.spd_solve(kin.M, W.T)) + jnp.diag(1.0 - m)
     return small_linalg.det(G)
+
+
+def stop_decision(scene: Scene, state: tuple, j: int, kin, mu, dq):
+    """Where slipping contact j of `state` stops: (the index in `stop_subsets(state, j)` of the
+    other slipping contacts stopped with it, their sliding speeds within `_SPEED_TIE` of 0;
+    whether all of those and j, stuck, have their forces in their cones)."""
+    tan = _layout(scene)[2]
+    row = [int(np.argmax(tan[i])) for i in range(len(state))]
+    others = others_slipping(state, j)
+    scale = 1.0 + jnp.max(jnp.abs(dq))
+    stopped = [jnp.abs(kin.adot[row[i]]) <= _SPEED_TIE * scale for i in others]
+    which, inside = jnp.array(-1), jnp.array(False)
+    for c, members in enumerate(stop_subsets(state, j)):
+        match = jnp.all(jnp.stack([stopped[others.index(i)] == (i in members) for i in others] + [True]))
+        stuck = tuple(STICK if i in (j, *members) else st for i, st in enumerate(state))
+        _, rows_mask, sign = _state_arrays(scene, stuck)
+        lam = friction_acceleration(scene, kin, mu, jnp.asarray(rows_mask, kin.J.dtype),
+                                    jnp.asarray(sign, kin.J.dtype), bool(rows_mask.sum() > scene.dim))[1]
+        ok = jnp.all(jnp.stack([jnp.abs(lam[row[i]]) <= mu[i] * lam[i] for i in (j, *members)]))
+        which, inside = jnp.where(match, c, which), jnp.where(match, ok, inside)
+    return which, inside
+
+
+def others_slipping(state: tuple, j: int) -> tuple:
+    return tuple(i for i, st in enumerate(state) if st in SIGN and i != j)
+
+
+def stop_subsets(state: tuple, j: int) -> list:
+    """The sets of other slipping contacts that can stop with j: none, then one, then two..."""
+    others = others_slipping(state, j)
+    return [c for size in range(len(others) + 1) for c in itertools.combinations(others, size)]
+
+
+def stop_goes(which, inside, subsets, to_stick: bool, tied: tuple):
+    """Whether the stop transition (to stick with the contacts `tied`, or to reverse) is taken."""
+    return (inside & (which == subsets.index(tied))) if to_stick else ~inside
 
 
 class _StateFunctions(eqx.Module):
@@ -241,46 +301,26 @@ class _StateFunctions(eqx.Module):
         return g
 
     def others_slipping(self, j) -> tuple:
-        return tuple(i for i, st in enumerate(self.state) if st in SIGN and i != j)
-
-    def stuck(self, members) -> "_StateFunctions":
-        """This state with the contacts `members` sticking."""
-        return _StateFunctions(
-            self.scene, tuple(STICK if i in members else st for i, st in enumerate(self.state))
-        )
+        return others_slipping(self.state, j)
 
     def stop(self, j, to_stick: bool, tied: tuple = ()):
         """s v_t of slipping contact j where the stop rule sends it (`to_stick`: it sticks with
         the other slipping contacts `tied`, those stopped at the same instant; otherwise it
-        slips back), positive elsewhere."""
+        slips back; `stop_decision`), positive elsewhere (`mechanics.selection_guard`)."""
         s = SIGN[self.state[j]]
         tan = _layout(self.scene)[2]
-        row = [int(np.argmax(tan[i])) for i in range(len(self.state))]
-        others = self.others_slipping(j)
-        subsets = [c for size in range(len(others) + 1) for c in itertools.combinations(others, size)]
-
-        def decide(t, x, args):
-            """(index in `subsets` of the contacts stopped with j, whether all of them stick)."""
-            rate = self.solve(t, x, args)[2]
-            scale = 1.0 + jnp.max(jnp.abs(x[self.scene.dim :]))
-            stopped = [jnp.abs(rate[row[i]]) <= _SPEED_TIE * scale for i in others]
-            mu = friction_coefficients(self.scene, args, x.dtype)
-            which, inside = jnp.array(-1), jnp.array(False)
-            for c, members in enumerate(subsets):
-                match = jnp.all(
-                    jnp.stack([stopped[others.index(i)] == (i in members) for i in others] + [True])
-                )
-                lam = self.stuck((j, *members)).solve(t, x, args)[1]
-                ok = jnp.all(jnp.stack([jnp.abs(lam[row[i]]) <= mu[i] * lam[i] for i in (j, *members)]))
-                which, inside = jnp.where(match, c, which), jnp.where(match, ok, inside)
-            return which, inside
+        r = int(np.argmax(tan[j]))
+        subsets = stop_subsets(self.state, j)
+        n = self.scene.dim
 
         def g(t, x, args):
-            v = s * self.solve(t, x, args)[2][row[j]]
+            v = s * self.solve(t, x, args)[2][r]
             # Which way it goes is a discrete choice: no derivative flows through it.
-            which, inside = decide(*jax.lax.stop_gradient((t, x, args)))
-            go = (inside & (which == subsets.index(tied))) if to_stick else ~inside
-            return jnp.where(go, v, jnp.abs(v) + 1.0)
+            t_, x_, a_ = jax.lax.stop_gradient((t, x, args))
+            kin = kinematics(self.scene, _layout(self.scene)[0], t_, x_[:n], x_[n:], a_)
+            mu = friction_coefficients(self.scene, a_, x.dtype)
+            which, inside = stop_decision(self.scene, self.state, j, kin, mu, x_[n:])
+            return selection_guard(v, stop_goes(which, inside, subsets, to_stick, tied))
 
         return g
 
@@ -361,38 +401,54 @@ class _FrictionImpact(eqx.Module):
     def outcome(self, c, t, x, args):
         n = self.scene.dim
         fns = _layout(self.scene)[0]
-        e_k = jnp.asarray(self.scene.constraints[self.k].coefficient(args), x.dtype)
-        e = jnp.zeros(len(fns), x.dtype).at[self.k].set(e_k)
+        e = self.restitution(args, x.dtype)
         return impact(self.scene, fns, self.held_rows(c, x.dtype), e, t, x[:n], x[n:], args)
 
-    def valid(self, c, t, x, args):
-        """Held impulses >= 0, released constraints separating, held rows independent."""
-        _, P, rates = self.outcome(c, t, x, args)
-        K = len(self.scene.constraints)
-        held = self.held_rows(c, x.dtype)
-        ok_P = jnp.all(jnp.where(held[:K] > 0, P[:K] >= -1e-9 * (1.0 + jnp.max(jnp.abs(P))), True))
-        released = jnp.asarray([float(i in self.candidates[c]) for i in range(K)], x.dtype)
-        tol_v = 1e-9 * (1.0 + jnp.max(jnp.abs(rates)))
-        ok_v = jnp.all(jnp.where(released > 0, rates[:K] >= -tol_v, True))
-        fns = _layout(self.scene)[0]
-        ok_i = independence(self.scene, fns, held, t, x[: self.scene.dim], args) > _INDEPENDENT
-        return ok_P & ok_v & ok_i
+    def outcome_tables(self):
+        """Per candidate: the rows held, the bit of each frictional contact of the new set in
+        the outcome's code, and the index of its first outcome; the gap rows involved."""
+        _, owners, _, _, _ = _layout(self.scene)
+        K, C = len(self.scene.constraints), len(self.candidates)
+        held = np.stack([np.asarray(self.held_rows(c, np.float64)) for c in range(C)])
+        bits, offsets, offset = np.zeros((C, K)), np.zeros(C, int), 0
+        for c in range(C):
+            fr = self.frictional(c)
+            # In the order of `itertools.product((1, -1), ...)`: the first contact most
+            # significant, 1 for slip-.
+            for b, i in enumerate(fr):
+                bits[c, i] = 2 ** (len(fr) - 1 - b)
+            offsets[c] = offset
+            offset += 2 ** len(fr)
+        source = {i for i, st in enumerate(self.source) if st is not None} | {self.k}
+        gap_rows = np.asarray([r < K and o in source for r, o in enumerate(owners)])
+        return held, bits, offsets, gap_rows
+
+    def outcome_from(self, kin, e):
+        """The index in `outcomes` of what happens at the state of `kin` (all rows; `e` the
+        restitution on k's gap row), -1 if no candidate solves the impact
+        (`mechanics.impact_candidate`): the first that does, and the signs of the new set's
+        frictional contacts' tangential velocities after it."""
+        held, bits, offsets, gap_rows = self.outcome_tables()
+        tan = jnp.asarray(_layout(self.scene)[2], kin.J.dtype)
+        every = jnp.ones(held.shape[1], bool)
+        ok, rates = jax.vmap(lambda h: impact_candidate(kin, h, e, every, jnp.asarray(gap_rows)))(
+            jnp.asarray(held, kin.J.dtype)
+        )
+        code = jnp.sum(jnp.asarray(bits, kin.J.dtype) * ((rates @ tan.T) < 0), axis=1).astype(jnp.int32)
+        c = jnp.argmax(ok)
+        return jnp.where(jnp.any(ok), jnp.asarray(offsets, jnp.int32)[c] + code[c], -1).astype(jnp.int32)
+
+    def restitution(self, args, dtype):
+        """(rows,): k's coefficient on its gap row."""
+        R = len(_layout(self.scene)[0])
+        e_k = jnp.asarray(self.scene.constraints[self.k].coefficient(args), dtype)
+        return jnp.zeros(R, dtype).at[self.k].set(e_k)
 
     def outcome_id(self, t, x, args):
-        """The index in `outcomes` of what happens at (t, x), -1 if no candidate is valid."""
-        tan = jnp.asarray(_layout(self.scene)[2], x.dtype)
-        result = jnp.array(-1, jnp.int32)
-        offset = 0
-        for c in range(len(self.candidates)):
-            fr = self.frictional(c)
-            vt = tan @ self.outcome(c, t, x, args)[2]
-            # Bits in the order of `itertools.product((1, -1), ...)`: the first contact most
-            # significant, 1 for slip-.
-            code = sum((vt[i] < 0).astype(jnp.int32) * 2 ** (len(fr) - 1 - b) for b, i in enumerate(fr))
-            ok = self.valid(c, t, x, args) & (result < 0)
-            result = jnp.where(ok, offset + code, result)
-            offset += 2 ** len(fr)
-        return result
+        """`outcome_from` at (t, x)."""
+        n = self.scene.dim
+        kin = kinematics(self.scene, _layout(self.scene)[0], t, x[:n], x[n:], args)
+        return self.outcome_from(kin, self.restitution(args, x.dtype))
 
     def guard(self, ids: tuple):
         """a_k where the outcome is one of `ids` (-1: none valid), positive elsewhere."""
@@ -401,8 +457,7 @@ class _FrictionImpact(eqx.Module):
         def g(t, x, args):
             a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
             got = self.outcome_id(*jax.lax.stop_gradient((t, x, args)))
-            hit = jnp.any(jnp.stack([got == i for i in ids]))
-            return jnp.where(hit, a, jnp.abs(a) + 1.0)
+            return selection_guard(a, jnp.any(jnp.stack([got == i for i in ids])))
 
         return g
 
@@ -449,19 +504,19 @@ def _friction_queries(scene: Scene, margin: float):
         dt = x.dtype
         tan, fr, uni = (jnp.asarray(a, dt) for a in (tan_np, friction_np, unilateral_np))
         mu = friction_coefficients(scene, args, dt)
-        a = constraint_kinematics(fns, t, q, dq, args)[0][:K]
-        ddq, lam, J, rate, bias = friction_solve(scene, Q.rows, Q.sign, t, q, dq, args, "search")
+        kin = kinematics(scene, fns, t, q, dq, args)
+        a, J, rate, bias = kin.gap[:K], kin.J, kin.adot, kin.bias
+        ddq, lam = friction_acceleration(scene, kin, mu, Q.rows, Q.sign, "search")
         lam_n, lam_t, v_t = lam[:K], tan @ lam, tan @ rate
         acc_t = tan @ (J @ ddq + bias)
         # The stopping contacts' forces were they to stick here.
         stopping = Q.stop + Q.tied
-        lam2 = friction_solve(
-            scene, Q.rows + tan.T @ stopping, Q.sign * (1 - stopping), t, q, dq, args, "search"
-        )[1]
+        stuck_rows, stuck_sign = Q.rows + tan.T @ stopping, Q.sign * (1 - stopping)
+        lam2 = friction_acceleration(scene, kin, mu, stuck_rows, stuck_sign, "search")[1]
         lam2_n, lam2_t = lam2[:K], tan @ lam2
         e = jnp.stack([jnp.asarray(c.coefficient(args), dt) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, dt)])
-        P, rates_plus = _search_impact(scene, Q.impact_rows, e, t, q, dq, args)
+        P, rates_plus = _search_impact(kin, Q.impact_rows, e, n)
         stuck = fr * (tan @ Q.rows)
         slipping = jnp.abs(Q.sign)
         s = Q.sign
@@ -583,6 +638,7 @@ def friction_system(
     redundant: str = "error",
     max_modes: int = 64,
     relabels: Sequence = (),
+    form: str = "mask",
 ) -> FrictionSystem:
     """`contact_system` for a scene with frictional contacts (see the module notes)."""
     if relabels:
@@ -711,10 +767,160 @@ def friction_system(
                 text = f"no state of the source found in the guard (least violation {least:.2g})"
             outcomes.setdefault((S, kind, j), []).append((detail, T, bool(found_v.any()), text))
 
-    return _assemble(scene, built, outcomes, impacts, margin, len(values))
+    return _assemble(scene, built, outcomes, impacts, margin, len(values), form)
 
 
-def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSystem:
+# ----------------------------------------------------------------------------- mode-indexed evaluation
+
+
+class FrictionSlot(eqx.Module):
+    """One watched function of a friction mode, as `FrictionEvaluation` reads it: `kind`
+    "painleve" (the slip consistency), "impact" (constraint `j`'s gap where the impact's
+    outcome is one of `ids`), "lift" (normal force of `j` + `offset`), "cone" (mu lambda_n +
+    `d` lambda_t of `j` + `offset`), "stop" (s v_t of slipping `j` of `state` where the stop
+    goes to stick with `tied` (`to_stick`) or to reverse), or "constant" (`offset`)."""
+
+    kind: str = eqx.field(static=True)
+    j: int = eqx.field(static=True, default=0)
+    offset: float = eqx.field(static=True, default=0.0)
+    d: float = eqx.field(static=True, default=0.0)
+    ids: tuple = eqx.field(static=True, default=())
+    impact: Any = eqx.field(static=True, default=None)
+    state: tuple | None = eqx.field(static=True, default=None)
+    to_stick: bool = eqx.field(static=True, default=False)
+    tied: tuple = eqx.field(static=True, default=())
+
+
+class FrictionReset(eqx.Module):
+    """The reset of one transition: the identity (`rows` None), or the impact map with the rows
+    `rows` held (restitution of constraint `hit`, when `restitute`) and least-norm impulses
+    when `least_norm` (a projection onto a stick state's rows is a plastic impact)."""
+
+    rows: tuple | None = eqx.field(static=True, default=None)
+    hit: int = eqx.field(static=True, default=0)
+    restitute: bool = eqx.field(static=True, default=False)
+    least_norm: bool = eqx.field(static=True, default=False)
+
+
+class FrictionEvaluation(ModeIndexed):
+    """A friction system evaluated for the traced mode: every state is one friction solve
+    (`friction_acceleration`) with the state's held rows, slip signs and least-norm flag, looked
+    up in tables by the mode; the guards read its forces and the kinematics' rates, and the
+    discrete choices (an impact's outcome, where a stopping contact goes) are computed only where
+    one of the current mode's guards that reads them is at or below zero."""
+
+    scene: Scene = eqx.field(static=True)
+    states: tuple = eqx.field(static=True)
+    slots: tuple = eqx.field(static=True)
+    resets: tuple = eqx.field(static=True)
+
+    def _tables(self):
+        R = len(_layout(self.scene)[0])
+        K = len(self.scene.constraints)
+        rows_t, sign_t, least_t = [], [], []
+        for S in self.states:
+            if S is None:
+                rows_t.append(np.zeros(R)), sign_t.append(np.zeros(K)), least_t.append(0.0)
+                continue
+            _, rows_mask, sign = _state_arrays(self.scene, S)
+            rows_t.append(rows_mask), sign_t.append(sign)
+            least_t.append(float(rows_mask.sum() > self.scene.dim))
+        return np.stack(rows_t), np.stack(sign_t), np.asarray(least_t)[:, None]
+
+    def _solve(self, mode, kin, mu, dtype):
+        rows_t, sign_t, least_t = self._tables()
+        least = _by_mode(mode, least_t, dtype)[0] if least_t.any() else False
+        rows_mask, sign = _by_mode(mode, rows_t, dtype), _by_mode(mode, sign_t, dtype)
+        return friction_acceleration(self.scene, kin, mu, rows_mask, sign, least), rows_mask, sign
+
+    def _kinematics(self, t, y, args):
+        n = self.scene.dim
+        return kinematics(self.scene, _layout(self.scene)[0], t, y[:n], y[n:], args)
+
+    def flow(self, mode, t, y, args) -> jax.Array:
+        n = self.scene.dim
+        kin = self._kinematics(t, y, args)
+        (ddq, _), _, _ = self._solve(mode, kin, friction_coefficients(self.scene, args, y.dtype), y.dtype)
+        terminal = jnp.asarray([S is None for S in self.states])[mode]
+        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
+
+    def watch(self, mode, t, y, args) -> jax.Array:
+        n, K = self.scene.dim, len(self.scene.constraints)
+        tan = _layout(self.scene)[2]
+        row = [int(np.argmax(tan[i])) for i in range(K)]
+        kin = self._kinematics(t, y, args)
+        mu = friction_coefficients(self.scene, args, y.dtype)
+        (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
+        gaps, rate = kin.gap[:K], kin.adot
+        slots = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs]
+
+        def speed(sp):
+            return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
+
+        # The discrete choices, without gradients, each once, where a guard reading it is <= 0.
+        kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
+        impacts = list(dict.fromkeys(sp.impact for _, sp in slots if sp.kind == "impact"))
+        stops = list(dict.fromkeys((sp.state, sp.j) for _, sp in slots if sp.kind == "stop"))
+
+        def choices():
+            got = [imp.outcome_from(kin_sg, imp.restitution(args_sg, y.dtype)) for imp in impacts]
+            dec = [stop_decision(self.scene, S, j, kin_sg, mu_sg, y_sg[n:]) for S, j in stops]
+            return jnp.asarray(got + [0], jnp.int32), jnp.asarray([w for w, _ in dec] + [0]), \
+                jnp.asarray([i for _, i in dec] + [False])
+
+        need = [(mode == m) & (gaps[sp.j] <= 0) for m, sp in slots if sp.kind == "impact"]
+        need += [(mode == m) & (speed(sp) <= 0) for m, sp in slots if sp.kind == "stop"]
+        if need:
+            none = (jnp.full(len(impacts) + 1, -1, jnp.int32), jnp.full(len(stops) + 1, -1),
+                    jnp.zeros(len(stops) + 1, bool))
+            got, which, inside = lax.cond(eqxi.unvmap_any(jnp.any(jnp.stack(need))), choices, lambda: none)
+        consistency_value = None
+        if any(sp.kind == "painleve" for _, sp in slots):
+            consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
+
+        def value(sp):
+            if sp.kind == "painleve":
+                return consistency_value
+            if sp.kind == "impact":
+                o = got[impacts.index(sp.impact)]
+                return selection_guard(gaps[sp.j], jnp.any(jnp.stack([o == i for i in sp.ids])))
+            if sp.kind == "lift":
+                return lam[sp.j] + sp.offset
+            if sp.kind == "cone":
+                return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
+            if sp.kind == "stop":
+                d = stops.index((sp.state, sp.j))
+                go = stop_goes(which[d], inside[d], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
+                return selection_guard(speed(sp), go)
+            return jnp.asarray(sp.offset, y.dtype)
+
+        out = []
+        for slot in range(max(map(len, self.slots), default=0)):
+            v = jnp.ones((), y.dtype)
+            for m, specs in enumerate(self.slots):
+                if slot < len(specs):
+                    v = jnp.where(mode == m, value(specs[slot]), v)
+            out.append(v)
+        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
+
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
+        n, K = self.scene.dim, len(self.scene.constraints)
+        owners = _layout(self.scene)[1]
+        R = len(owners)
+        specs = self.resets
+        held = np.asarray([np.zeros(R) if r.rows is None else r.rows for r in specs])
+        moves = np.asarray([r.rows is not None for r in specs])
+        hit = np.asarray([[float(r.restitute and i == r.hit) for i in range(R)] for r in specs])
+        least = np.asarray([float(r.least_norm) for r in specs])
+        e_all = jnp.stack([jnp.asarray(c.coefficient(args), y.dtype) for c in self.scene.constraints])
+        e = jnp.asarray(hit, y.dtype)[k] * jnp.concatenate([e_all, jnp.zeros(R - K, y.dtype)])
+        kin = self._kinematics(t, y, args)
+        ln = jnp.asarray(least, y.dtype)[k] if least.any() else False
+        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, ln)
+        return jnp.concatenate([y[:n], jnp.where(jnp.asarray(moves)[k], dq_plus, y[n:])])
+
+
+def _assemble(scene, built, outcomes, impacts, margin, num_values, form="mask") -> FrictionSystem:
     """Modes, transitions (in each mode: consistency, impacts, lift-offs, stick/slip) and the
     report of a friction build."""
     n = scene.dim
@@ -723,8 +929,9 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
     comp = tuple(names) + tuple(f"d{s}" for s in names)
     modes = [Mode(state_name(scene, S), funcs[S].flow, dim=2 * n, names=comp) for S in built]
     transitions, achievable, pruned, terminals = [], [], [], {}
+    slot_specs, reset_specs = [], []  # per transition, for `FrictionEvaluation`
 
-    def add(src, T, guard, reset, label, text, ok):
+    def add(src, T, guard, reset, label, text, ok, slot=None, reset_spec=None):
         tgt = state_name(scene, T)
         if not ok:
             tgt = UNBUILT + tgt
@@ -735,6 +942,8 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
         transitions.append(
             Transition(src, tgt, guard=guard, reset=reset or _identity, name=f"{label}: {src} -> {tgt}")
         )
+        slot_specs.append(slot)
+        reset_specs.append(reset_spec or FrictionReset())
 
     for S in built:
         src = state_name(scene, S)
@@ -744,6 +953,8 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
             transitions.append(
                 Transition(src, term, guard=funcs[S].consistency, name=f"painleve: {src} -> {term}")
             )
+            slot_specs.append(FrictionSlot("painleve"))
+            reset_specs.append(FrictionReset())
         for (S_, kind, j), items in outcomes.items():
             if S_ != S:
                 continue
@@ -753,41 +964,69 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
                 missing = tuple(o for o, _, ok, _ in items if not ok) + (-1,)
                 for o, T, ok, text in items:
                     if ok:
+                        c = imp.outcomes[o][0]
+                        rows_c = tuple(float(v) for v in np.asarray(imp.held_rows(c, np.float64)))
                         add(
                             src,
                             T,
                             imp.guard((o,)),
-                            imp.reset(imp.outcomes[o][0]),
+                            imp.reset(c),
                             f"impact {cname}",
                             text,
                             True,
+                            FrictionSlot("impact", j, ids=(o,), impact=imp),
+                            FrictionReset(rows_c, j, restitute=True),
                         )
                 first = next((T for _, T, ok, _ in items if not ok), None)
                 if first is not None:
                     texts = "; ".join(t for _, _, ok, t in items if not ok)
-                    add(src, first, imp.guard(missing), None, f"impact {cname}", texts, False)
+                    add(src, first, imp.guard(missing), None, f"impact {cname}", texts, False,
+                        FrictionSlot("impact", j, ids=missing, impact=imp))
                 else:  # no valid candidate: an impact that cannot be resolved stops the execution
                     term = f"{INCONSISTENT}impact of {cname} in {src}"
                     terminals[term] = None
                     transitions.append(
                         Transition(src, term, guard=imp.guard((-1,)), name=f"impact {cname}: {term}")
                     )
+                    slot_specs.append(FrictionSlot("impact", j, ids=(-1,), impact=imp))
+                    reset_specs.append(FrictionReset())
             for detail, T, ok, text in items if kind != "impact" else ():
                 off = 0.0 if ok else margin
                 if kind == "lift-off":
                     guard = funcs[S].normal(j, off)
+                    slot = FrictionSlot("lift", j, off)
                 elif kind == "slip":
                     guard = funcs[S].cone(j, detail, off)
+                    slot = FrictionSlot("cone", j, off, d=detail)
                 else:
                     guard = funcs[S].stop(j, detail is not None, detail or ())
+                    slot = FrictionSlot("stop", j, state=S, to_stick=detail is not None, tied=detail or ())
                 stick = kind == "stop" and detail is not None
                 reset = _StateFunctions(scene, T).project if stick else None
+                reset_spec = None
+                if stick:
+                    _, rows_T, _ = _state_arrays(scene, T)
+                    reset_spec = FrictionReset(tuple(map(float, rows_T)), least_norm=bool(rows_T.sum() > n))
                 label = {"lift-off": "lift-off", "slip": "slip", "stop": "stick" if stick else "reverse"}[
                     kind
                 ]
-                add(src, T, guard, reset, f"{label} {cname}", text, ok)
+                add(src, T, guard, reset, f"{label} {cname}", text, ok, slot, reset_spec)
     for term in terminals:
         modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
+    # Slots in the engine's order: each mode's transitions in index order, then a terminal mode's
+    # one domain component (-1).
+    mode_names = [m.name for m in modes]
+    sources = [mode_names.index(tr.source) for tr in transitions]
+    evaluation = FrictionEvaluation(
+        scene=scene,
+        states=tuple(built) + (None,) * len(terminals),
+        slots=tuple(
+            tuple(slot_specs[i] for i, m_ in enumerate(sources) if m_ == m)
+            + ((FrictionSlot("constant", offset=-1.0),) if m >= len(built) else ())
+            for m in range(len(modes))
+        ),
+        resets=tuple(reset_specs),
+    )
 
     report = [f"states built: {len(built)} ({', '.join(state_name(scene, S) for S in built)})"]
     report += [f"  achievable: {kind} of {c}: {s} -> {t}; {text}" for s, t, kind, c, text in achievable]
@@ -810,5 +1049,6 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values) -> FrictionSy
         least_norm_modes=(False,) * len(modes),
         report=tuple(report),
         achievable=tuple(achievable),
-        form="branch",
+        form=form,
+        evaluation=evaluation if form == "mask" else None,
     )

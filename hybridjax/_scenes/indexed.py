@@ -21,7 +21,6 @@ from jax import lax
 
 from .._definition.indexed import ModeIndexed
 from .mechanics import (
-    _row_mask,
     acceleration,
     impact_map,
     kinematics,
@@ -90,12 +89,12 @@ class ContactEvaluation(ModeIndexed):
     def _rows(self):
         return rows(self.scene, range(len(self.scene.constraints)))
 
-    def _mode_masks(self, dtype) -> jax.Array:
-        """(modes, rows): 1 on the rows of each mode's held constraints."""
+    def _mode_mask(self, mode, dtype) -> jax.Array:
+        """(rows,): 1 on the rows of `mode`'s held constraints (a terminal mode holds none)."""
         K = len(self.scene.constraints)
         _, owners = self._rows()
-        table = [[0.0 if s is None or i not in s else 1.0 for i in range(K)] for s in self.mode_sets]
-        return jnp.stack([_row_mask(owners, row, dtype) for row in table])
+        table = np.asarray([[float(s is not None and i in s) for i in range(K)] for s in self.mode_sets])
+        return _by_mode(mode, table[:, np.asarray(owners, dtype=int)], dtype)
 
     def _kinematics(self, t, y, args):
         n = self.scene.dim
@@ -110,14 +109,14 @@ class ContactEvaluation(ModeIndexed):
     def flow(self, mode, t, y, args) -> jax.Array:
         n = self.scene.dim
         kin = self._kinematics(t, y, args)
-        ddq, _ = acceleration(kin, self._mode_masks(y.dtype)[mode], self.least_norm)
+        ddq, _ = acceleration(kin, self._mode_mask(mode, y.dtype), self.least_norm)
         terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
         return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
 
     def watch(self, mode, t, y, args) -> jax.Array:
         K = len(self.scene.constraints)
         kin = self._kinematics(t, y, args)
-        _, lam = acceleration(kin, self._mode_masks(y.dtype)[mode], self.least_norm)
+        _, lam = acceleration(kin, self._mode_mask(mode, y.dtype), self.least_norm)
         gaps = kin.gap[:K]
         # Every impact's choice in one vmapped call, whichever slots read it, and only where
         # one of the current mode's selection guards is at or below zero, where it is read
@@ -151,12 +150,17 @@ class ContactEvaluation(ModeIndexed):
                 off_row.append(spec.offset)
             source.append(src_row)
             offset.append(off_row)
-        S = max(map(len, self.slots), default=0)
         values = jnp.concatenate([*values, jnp.zeros((1,), y.dtype)])
-        # Unused slots read 0 + 1.
-        source = np.asarray([r + [-1] * (S - len(r)) for r in source], dtype=np.int32) % values.shape[0]
-        offset = np.asarray([r + [1.0] * (S - len(r)) for r in offset])
-        return values[jnp.asarray(source)[mode]] + jnp.asarray(offset, y.dtype)[mode]
+        # Slot s of `mode`: values[source] + offset; an unused slot reads 0 + 1. Selected by
+        # `mode` elementwise (a gather by a traced index is slow under `jax.vmap` on XLA:CPU).
+        out = []
+        for slot in range(max(map(len, self.slots), default=0)):
+            v = jnp.ones((), y.dtype)
+            for m, (src_row, off_row) in enumerate(zip(source, offset, strict=True)):
+                if slot < len(src_row):
+                    v = jnp.where(mode == m, values[src_row[slot]] + off_row[slot], v)
+            out.append(v)
+        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
 
     def _choices(self, kin, choices, args, dtype):
         """`release_choice` of each impact in `choices` ((held, hit, involved, gap_rows) tuples)
@@ -181,7 +185,7 @@ class ContactEvaluation(ModeIndexed):
         return jax.vmap(one)(jnp.asarray(held, dtype), jnp.asarray(present), jnp.asarray(hit, dtype),
                              jnp.asarray([ch[2] for ch in choices]), jnp.asarray([ch[3] for ch in choices]))
 
-    def reset(self, k, t, y, args) -> jax.Array:
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n = self.scene.dim
         _, owners = self._rows()
         specs = self.resets
@@ -198,3 +202,12 @@ class ContactEvaluation(ModeIndexed):
         which = jnp.asarray([r.relabel + 1 for r in specs], jnp.int32)[k]
         branches = [lambda t, x, args: x, *self.relabel_maps]
         return lax.switch(which, branches, t, x, args)
+
+
+def _by_mode(mode, table, dtype) -> jax.Array:
+    """Row `mode` of the constant (modes, m) `table`, each entry selected elementwise by `mode`
+    (no gather by a traced index)."""
+    row = jnp.zeros(table.shape[1], dtype)
+    for m in range(table.shape[0]):
+        row = jnp.where(mode == m, jnp.asarray(table[m], dtype), row)
+    return row

@@ -57,8 +57,8 @@ def schur_solve(v, W, G, J, bottom, mask, least_norm=False):
     the held rates are then met to $\varepsilon |\mu|$ and, as $\varepsilon \to 0$, $\mu$
     tends to the least-norm solution of dependent rows."""
     eps = 0.0
-    if least_norm:
-        eps = 1e-10 * jnp.sum(mask * jnp.diag(G)) / max(G.shape[0], 1)
+    if least_norm is not False:  # True, or a traced 0/1 factor (one per mode of a table)
+        eps = 1e-10 * jnp.sum(mask * jnp.diag(G)) / max(G.shape[0], 1) * least_norm
     S = mask[:, None] * mask[None, :] * G + jnp.diag(1.0 - mask + eps * mask)
     mu = small_linalg.spd_solve(S, mask * (bottom - J @ v))
     return v + W @ mu, mu
@@ -140,29 +140,30 @@ def gram_independence(G, held):
 _INDEPENDENT = 1e-9  # `gram_independence` below this: dependent
 
 
+def impact_candidate(kin: Kinematics, held, e, involved, gap_rows, least_norm=False):
+    """Whether the impact with the rows `held` held solves it, and its rates $\dot a^+$: on the
+    gap rows of the constraints involved (`gap_rows`: the source set's and the impacting
+    one's) the held impulses are >= 0 and the released rates >= 0 (each to 1e-9 of its scale
+    over the rows `involved`), and the held rows are independent (`gram_independence`; not
+    asked with `least_norm`)."""
+    _, P, rates = impact_map(kin, held, e, least_norm)
+    scale = 1.0 + jnp.max(jnp.abs(P))
+    ok_P = jnp.all(jnp.where((held > 0) & gap_rows, P >= -1e-9 * scale, True))
+    tol_v = 1e-9 * (1.0 + jnp.max(jnp.where(involved, jnp.abs(rates), 0.0)))
+    ok_v = jnp.all(jnp.where((held > 0) | ~gap_rows, True, rates >= -tol_v))
+    ok = ok_P & ok_v
+    if least_norm is False:
+        ok = ok & (gram_independence(kin.G, held) > _INDEPENDENT)
+    return ok, rates
+
+
 def release_choice(kin: Kinematics, held_masks, e, involved, gap_rows, least_norm=False, present=None):
-    """The first of an impact's release candidates that solves it, -1 if none.
-
-    Candidate c holds the rows `held_masks[c]` ((C, rows); none, then one, then two released
-    contacts...; `present` (C,) marks the candidates of a padded table). It solves the impact
-    when, on the gap rows of the constraints involved (`gap_rows`: the source set's and the
-    impacting one's), the held impulses are >= 0 and the released rates >= 0 (each to 1e-9 of
-    its scale over the rows `involved`), and the held rows are independent
-    (`gram_independence`; not asked with `least_norm`). For independent constraints this
-    linear complementarity problem has one solution. The candidates are one vmapped solve."""
-
-    def solves(held):
-        _, P, rates = impact_map(kin, held, e, least_norm)
-        scale = 1.0 + jnp.max(jnp.abs(P))
-        ok_P = jnp.all(jnp.where((held > 0) & gap_rows, P >= -1e-9 * scale, True))
-        tol_v = 1e-9 * (1.0 + jnp.max(jnp.where(involved, jnp.abs(rates), 0.0)))
-        ok_v = jnp.all(jnp.where((held > 0) | ~gap_rows, True, rates >= -tol_v))
-        ok = ok_P & ok_v
-        if not least_norm:
-            ok = ok & (gram_independence(kin.G, held) > _INDEPENDENT)
-        return ok
-
-    ok = jax.vmap(solves)(held_masks)
+    """The first of an impact's release candidates that solves it (`impact_candidate`), -1 if
+    none: candidate c holds the rows `held_masks[c]` ((C, rows); none, then one, then two
+    released contacts...; `present` (C,) marks the candidates of a padded table). For
+    independent constraints this linear complementarity problem has one solution. The
+    candidates are one vmapped solve."""
+    ok, _ = jax.vmap(lambda held: impact_candidate(kin, held, e, involved, gap_rows, least_norm))(held_masks)
     if present is not None:
         ok = ok & present
     return jnp.where(jnp.any(ok), jnp.argmax(ok), -1).astype(jnp.int32)

@@ -720,7 +720,7 @@ def contact_system(
       (each mode's and each transition's own function, evaluated and selected under
       `jax.vmap`: every mode's solve in every step). Both give the same executions to
       rounding; the mask is faster to compile and to run (docs: Scenes, "What it costs").
-      A scene with friction is built in the branch form.
+      Scenes with friction too (`FrictionEvaluation`).
     - `max_modes`: a build that would exceed this many modes stops with an error.
     - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
       set goes to its `target` set, the state relabelled).
@@ -744,6 +744,7 @@ def contact_system(
         return friction_system(
             scene, initial, args, args_values=args_values, num_samples=num_samples, num_starts=num_starts,
             margin=margin, tol=tol, seed=seed, redundant=redundant, max_modes=max_modes, relabels=relabels,
+            form=form,
         )  # fmt: skip
     values = list(args_values) if args_values is not None else [args]
     if not values:
