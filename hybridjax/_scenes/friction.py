@@ -388,28 +388,27 @@ class _FrictionImpact(eqx.Module):
             for i in range(len(self.scene.constraints))
         )
 
-    def held_rows(self, c, dtype):
-        """The rows the impact holds: the new set's gaps (and k's), and the tangents of
-        contacts that stick without a friction limit."""
+    def held_rows(self, c, dtype=None):
+        """The rows the impact holds (a numpy array): the new set's gaps (and k's), and the
+        tangents of contacts that stick without a friction limit."""
         _, owners, _, friction, _ = _layout(self.scene)
         keep = set(self.new_set(c)) | {self.k}
         K = len(self.scene.constraints)
-        return jnp.asarray(
-            [float(i in keep and (r < K or not friction[i])) for r, i in enumerate(owners)], dtype
-        )
+        held = [float(i in keep and (r < K or not friction[i])) for r, i in enumerate(owners)]
+        return np.asarray(held, dtype)
 
     def outcome(self, c, t, x, args):
         n = self.scene.dim
         fns = _layout(self.scene)[0]
         e = self.restitution(args, x.dtype)
-        return impact(self.scene, fns, self.held_rows(c, x.dtype), e, t, x[:n], x[n:], args)
+        return impact(self.scene, fns, jnp.asarray(self.held_rows(c), x.dtype), e, t, x[:n], x[n:], args)
 
     def outcome_tables(self):
         """Per candidate: the rows held, the bit of each frictional contact of the new set in
         the outcome's code, and the index of its first outcome; the gap rows involved."""
         _, owners, _, _, _ = _layout(self.scene)
         K, C = len(self.scene.constraints), len(self.candidates)
-        held = np.stack([np.asarray(self.held_rows(c, np.float64)) for c in range(C)])
+        held = np.stack([self.held_rows(c) for c in range(C)])
         bits, offsets, offset = np.zeros((C, K)), np.zeros(C, int), 0
         for c in range(C):
             fr = self.frictional(c)
@@ -965,7 +964,7 @@ def _assemble(scene, built, outcomes, impacts, margin, num_values, form="mask") 
                 for o, T, ok, text in items:
                     if ok:
                         c = imp.outcomes[o][0]
-                        rows_c = tuple(float(v) for v in np.asarray(imp.held_rows(c, np.float64)))
+                        rows_c = tuple(map(float, imp.held_rows(c)))
                         add(
                             src,
                             T,
