@@ -254,10 +254,9 @@ def run_rod(x0, mode, mu, t1):
     )
 
 
-# Heavy: the system has 8 states (20 modes, 43 transitions); building it took 220 s and compiling
-# `simulate` for it 18 minutes on a loaded 2-core machine (see the docs' note on the cost), so it
-# is not in the default run: `python -m pytest -m heavy tests/test_friction.py`.
-@pytest.mark.heavy
+# The system has 8 states (20 modes, 43 transitions): its build and compile take a few minutes on
+# 2 cores.
+@pytest.mark.slow
 def test_rod_lands_slips_back_lands_and_stops_as_computed_by_hand():
     modes, times, final = rod_by_hand(0.1, 0.5, 0.3, ROD_MU)
     # The left end lands slipping to -x, stops and slips back (sticking would need more than

@@ -25,6 +25,7 @@ from .mechanics import (
     impact_map,
     kinematics,
     release_choice,
+    restrict,
     rows,
     selection_guard,
 )
@@ -164,26 +165,23 @@ class ContactEvaluation(ModeIndexed):
 
     def _choices(self, kin, choices, args, dtype):
         """`release_choice` of each impact in `choices` ((held, hit, involved, gap_rows) tuples)
-        at the state of `kin`, without gradients: (P,) candidate indices, one vmapped call over
-        the impacts (candidate tables padded)."""
+        at the state of `kin`, without gradients: (P,) candidate indices. Each on the rows of
+        its own constraints (`restrict`: a few rows, not all the scene's), its candidates one
+        vmapped solve."""
         if not choices:
             return jnp.zeros((0,), jnp.int32)
-        R = len(choices[0][2])
-        C = max(len(ch[0]) for ch in choices)
-        held = np.zeros((len(choices), C, R))
-        present = np.zeros((len(choices), C), bool)
-        for p, ch in enumerate(choices):
-            held[p, : len(ch[0])] = ch[0]
-            present[p, : len(ch[0])] = True
-        hit = np.asarray([[float(r == ch[1]) for r in range(R)] for ch in choices])
         e = lax.stop_gradient(self._restitution(args, dtype))
         kin = lax.stop_gradient(kin)
-
-        def one(held, present, hit, involved, gap_rows):
-            return release_choice(kin, held, e * hit, involved, gap_rows, self.least_norm, present)
-
-        return jax.vmap(one)(jnp.asarray(held, dtype), jnp.asarray(present), jnp.asarray(hit, dtype),
-                             jnp.asarray([ch[2] for ch in choices]), jnp.asarray([ch[3] for ch in choices]))
+        picks = []
+        for held, hit, involved, gap_rows in choices:
+            idx = [r for r, used in enumerate(involved) if used]
+            sub = restrict(kin, idx)
+            held_sub = jnp.asarray([[h[r] for r in idx] for h in held], dtype)
+            e_sub = jnp.stack([e[r] if r == hit else jnp.zeros((), dtype) for r in idx])
+            gaps_sub = jnp.asarray([gap_rows[r] for r in idx])
+            picks.append(release_choice(sub, held_sub, e_sub, jnp.ones(len(idx), bool), gaps_sub,
+                                        self.least_norm))
+        return jnp.stack(picks)
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n = self.scene.dim

@@ -106,6 +106,19 @@ def kinematics(scene, fns, t, q, dq, args) -> Kinematics:
     return Kinematics(M, f, gap, J, adot, bias, dq, X[:, 0], W, J @ W)
 
 
+def restrict(kin: Kinematics, idx) -> Kinematics:
+    """The `Kinematics` of the rows `idx` (static indices) alone: a solve that holds only some
+    rows needs only theirs, and its size is theirs."""
+    idx = list(idx)
+
+    def pick(a):
+        return jnp.stack([a[r] for r in idx])
+
+    W = jnp.stack([kin.W[:, r] for r in idx], axis=1)
+    G = jnp.stack([jnp.stack([kin.G[r, c] for c in idx]) for r in idx])
+    return kin._replace(gap=pick(kin.gap), J=pick(kin.J), adot=pick(kin.adot), bias=pick(kin.bias), W=W, G=G)
+
+
 def acceleration(kin: Kinematics, mask, least_norm=False):
     r"""$\ddot q$ and $\lambda$ with the rows held where `mask` is 1:
     $M \ddot q = f + J^\top \lambda$, $J \ddot q = -c$ on the held rows (`kkt_solve`)."""
