@@ -32,7 +32,7 @@ WEDGES = {th: hj.contact_system(WEDGE, ["free"], wedge_args(th)) for th in THETA
 
 def table(system):
     """(modes built, achievable transitions as (kind, constraint, source, target))."""
-    modes = {m.name for m in system.modes if not m.name.startswith("unbuilt")}
+    modes = {m.name for m, s in zip(system.modes, system.contact_sets, strict=True) if s is not None}
     edges = {(kind, c, src, tgt) for src, tgt, kind, c, _ in system.achievable}
     return modes, edges
 
@@ -407,7 +407,7 @@ def _triangle_system():
     return hj.contact_system(examples.polygon_particle(3), ["free"], {"g": jnp.asarray(G), "r": jnp.asarray(1.0)})
 
 
-@pytest.mark.parametrize("name", ["triangle", "wedge"])
+@pytest.mark.parametrize("name", ["triangle", "wedge", "wheel"])
 def test_mask_evaluation_equals_the_modes_own_functions(name):
     """The one masked evaluation of every mode (`ContactEvaluation`) against each mode's and
     transition's own function, as the engines see them (`Kernels` with and without it): flows,
@@ -418,8 +418,11 @@ def test_mask_evaluation_equals_the_modes_own_functions(name):
     if name == "triangle":
         system, args = _triangle_system(), {"g": jnp.asarray(G), "r": jnp.asarray(1.0)}
         assert any(sp.kind == SELECTED for slots in system.evaluation.slots for sp in slots)
-    else:
+    elif name == "wedge":
         system, args = WEDGES[3 * math.pi / 4], wedge_args(3 * math.pi / 4)
+    else:  # relabelled spokes, a sticking foot (a tangent without friction)
+        system, args, _, _ = wheel()
+        assert system.evaluation.relabel_maps
     assert system.form == "mask" and system.mode_indexed() is system.evaluation
     rng = np.random.default_rng(1)
     n = system.scene.dim
@@ -428,4 +431,4 @@ def test_mask_evaluation_equals_the_modes_own_functions(name):
     # States on the walls and at rest too: where the selection guards read their choice.
     xs[:16, n:] = 0.0
     xs[16:32, 1] = -1.0
-    assert evaluations_agree(system, args, jnp.asarray(xs)) > 1000
+    assert evaluations_agree(system, args, jnp.asarray(xs)) > 500

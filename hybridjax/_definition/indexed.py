@@ -14,8 +14,10 @@ implements `ModeIndexed`: the flow, the watched functions and the resets for a t
 engines then evaluate it once per call, whatever the number of modes.
 
 The per-mode `Mode` and `Transition` functions stay the definition: `ModeIndexed` must agree
-with them (to rounding), and every tool that takes one mode or transition at a time
-(saltation matrices, property checks, plots) uses them.
+with them (to rounding). The engines, and every tool that evaluates through `Kernels` (the
+property checks), use `ModeIndexed`; the tools that take a mode's or a transition's own
+function (saltation matrices, plots) use those. It is an internal extension point, not
+exported.
 """
 
 import abc

@@ -5,7 +5,9 @@ components; their outputs are padded back with zeros. The current mode is a trac
 so under `jax.vmap` every mode's branch is evaluated and one is selected. An inactive branch
 may see a state of another mode, on which a user function can return NaN or inf; its inputs
 are therefore passed through `stop_gradient` (the "double where" idiom), so that a NaN in a
-branch that was not taken never reaches a gradient.
+branch that was not taken never reaches a gradient. A system that implements `ModeIndexed`
+(`HybridSystem.mode_indexed`) is instead evaluated once per call for the traced mode
+(`Kernels.indexed`).
 """
 
 from collections.abc import Callable

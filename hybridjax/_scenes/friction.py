@@ -62,6 +62,7 @@ from .mechanics import (
 )
 from .scene import (
     FREE,
+    INCONSISTENT,
     UNBUILT,
     UNILATERAL,
     ContactSystem,
@@ -77,7 +78,6 @@ from .scene import (
 
 HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
 SIGN = {SLIP_POS: 1.0, SLIP_NEG: -1.0}
-INCONSISTENT = "inconsistent: "
 # Sliding speeds within this fraction of 1 + max |dq| of 0 when another contact stops count as
 # stopped with it (a flat body's two ends stop at one instant, up to rounding).
 _SPEED_TIE = 1e-8

@@ -20,6 +20,7 @@ import numpy as np
 from jax import lax
 
 from .._definition.indexed import ModeIndexed
+from .._definition.kernels import dispatch
 from .mechanics import (
     acceleration,
     impact_map,
@@ -38,7 +39,7 @@ class ReleaseChoice(eqx.Module):
     """An impact's release candidates on the rows of all the scene's constraints, as
     `mechanics.release_choice` takes them: per candidate the rows held, the impacting
     constraint `hit` (its restitution on its gap row), the rows of the constraints involved
-    and their gap rows."""
+    (`involved`: their indices, in the order of the impact's own rows) and the gap rows."""
 
     held: tuple = eqx.field(static=True)
     hit: int = eqx.field(static=True)
@@ -174,7 +175,7 @@ class ContactEvaluation(ModeIndexed):
         kin = lax.stop_gradient(kin)
         picks = []
         for held, hit, involved, gap_rows in choices:
-            idx = [r for r, used in enumerate(involved) if used]
+            idx = list(involved)
             sub = restrict(kin, idx)
             held_sub = jnp.asarray([[h[r] for r in idx] for h in held], dtype)
             e_sub = jnp.stack([e[r] if r == hit else jnp.zeros((), dtype) for r in idx])
@@ -198,8 +199,7 @@ class ContactEvaluation(ModeIndexed):
         if not self.relabel_maps:
             return x
         which = jnp.asarray([r.relabel + 1 for r in specs], jnp.int32)[k]
-        branches = [lambda t, x, args: x, *self.relabel_maps]
-        return lax.switch(which, branches, t, x, args)
+        return dispatch(which, [lambda t, x, args: x, *self.relabel_maps], t, x, args)
 
 
 def _by_mode(mode, table, dtype) -> jax.Array:

@@ -51,17 +51,21 @@ def schur_solve(v, W, G, J, bottom, mask, least_norm=False):
     $m_i = 0$ drop out: $\mu_i = 0$), from $v = M^{-1}$ top, $W = M^{-1} J^\top$ and the Gram
     matrix $G = J W$ (shared by every mask): $u = v + W \mu$ with
     $((m m^\top) \odot G + \mathrm{diag}(1 - m) + \varepsilon\, \mathrm{diag}(m)) \mu
-    = m \odot (\text{bottom} - J v)$, solved by `small_linalg.spd_solve`.
+    = m \odot (\text{bottom} - J v)$, solved by `small_linalg.spd_solve`. The rows dropped are
+    masked by selection, so a non-finite value in one of them does not reach the others.
 
-    $\varepsilon = 0$; with `least_norm`, $\varepsilon = 10^{-10} \operatorname{tr}(G_m) / K$:
-    the held rates are then met to $\varepsilon |\mu|$ and, as $\varepsilon \to 0$, $\mu$
-    tends to the least-norm solution of dependent rows."""
+    $\varepsilon = 0$; with `least_norm` (True, or a 0/1 factor), $\varepsilon = 10^{-10}
+    \operatorname{tr}(G_m) / \sum_i m_i$: the held rates are then met to $\varepsilon |\mu|$
+    and, as $\varepsilon \to 0$, $\mu$ tends to the least-norm solution of dependent rows."""
+    held = mask > 0
+    both = held[:, None] & held[None, :]
     eps = 0.0
-    if least_norm is not False:  # True, or a traced 0/1 factor (one per mode of a table)
-        eps = 1e-10 * jnp.sum(mask * jnp.diag(G)) / max(G.shape[0], 1) * least_norm
-    S = mask[:, None] * mask[None, :] * G + jnp.diag(1.0 - mask + eps * mask)
-    mu = small_linalg.spd_solve(S, mask * (bottom - J @ v))
-    return v + W @ mu, mu
+    if least_norm is not False:
+        trace = jnp.sum(jnp.where(held, jnp.diag(G), 0.0))
+        eps = 1e-10 * trace / jnp.maximum(jnp.sum(mask), 1.0) * least_norm
+    S = jnp.where(both, G, 0.0) + jnp.diag(1.0 - mask + eps * mask)
+    mu = small_linalg.spd_solve(S, jnp.where(held, bottom - J @ v, 0.0))
+    return v + jnp.where(held[None, :], W, 0.0) @ mu, mu
 
 
 def kkt_solve(M, top, J, bottom, mask, least_norm=False):
@@ -144,7 +148,7 @@ def gram_independence(G, held):
     NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
     pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
     as `kkt_solve` (no LAPACK call per lane)."""
-    G = held[:, None] * held[None, :] * G + jnp.diag(1.0 - held)
+    G = jnp.where((held[:, None] > 0) & (held[None, :] > 0), G, 0.0) + jnp.diag(1.0 - held)
     L = small_linalg.cholesky(0.5 * (G + G.T))
     pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
     return jnp.min(pivots) / jnp.max(jnp.diag(G))
@@ -158,7 +162,7 @@ def impact_candidate(kin: Kinematics, held, e, involved, gap_rows, least_norm=Fa
     gap rows of the constraints involved (`gap_rows`: the source set's and the impacting
     one's) the held impulses are >= 0 and the released rates >= 0 (each to 1e-9 of its scale
     over the rows `involved`), and the held rows are independent (`gram_independence`; not
-    asked with `least_norm`)."""
+    asked with `least_norm`, a Python bool here)."""
     _, P, rates = impact_map(kin, held, e, least_norm)
     scale = 1.0 + jnp.max(jnp.abs(P))
     ok_P = jnp.all(jnp.where((held > 0) & gap_rows, P >= -1e-9 * scale, True))

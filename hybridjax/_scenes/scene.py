@@ -37,7 +37,9 @@ guard's interior, where a flow crossing $\lambda_j = 0$ or a reset lands). Every
 pruned and the system's repr says which and why. Sampling cannot prove a transition impossible:
 every pruned transition still leads, with its guard, to a terminal mode named
 `"unbuilt: <set>"`, whose empty domain ends the execution with `Status.BLOCKED` there, so an
-execution that reaches a contact set that was not built stops and names it.
+execution that reaches a contact set that was not built stops and names it. So does an impact
+that no release candidate solves (dependent constraints, or rounding at a tie): with the
+unbuilt candidates, or in a terminal mode `"inconsistent: impact of <k> in <set>"`.
 """
 
 import functools
@@ -74,6 +76,7 @@ UNILATERAL = "unilateral"
 BILATERAL = "bilateral"
 FREE = "free"
 UNBUILT = "unbuilt: "
+INCONSISTENT = "inconsistent: "
 
 
 def _nested_tuple(value):
@@ -394,18 +397,23 @@ class _Impact(eqx.Module):
 
     def choice(self) -> ReleaseChoice:
         """`select` on the rows of all the scene's constraints, for `ContactEvaluation`."""
-        _, owners = rows(self.scene, range(len(self.scene.constraints)))
+        K = len(self.scene.constraints)
+        _, owners = rows(self.scene, range(K))
+        # The rows of `order` in `select`'s order (gaps of `order`, then their tangents), as
+        # indices into all the rows: the independence test's pivots depend on the order.
+        _, own = rows(self.scene, self.order)
+        index = [o if r < len(self.order) else K + owners[K:].index(o) for r, o in enumerate(own)]
         return ReleaseChoice(
             held=tuple(tuple(float(o in self.order and o not in R) for o in owners) for R in self.candidates),
             hit=self.k,
-            involved=tuple(o in self.order for o in owners),
-            gap_rows=tuple(o in self.order and r < len(self.scene.constraints) for r, o in enumerate(owners)),
+            involved=tuple(index),
+            gap_rows=tuple(o in self.order and r < K for r, o in enumerate(owners)),
         )
 
     def guard(self, chosen: tuple):
         """a_k where the selected candidate is in `chosen`, positive elsewhere."""
         k_fn = self.scene.constraints[self.k].fn
-        if len(chosen) == len(self.candidates):
+        if set(range(len(self.candidates))) <= set(chosen):
             return lambda t, x, args: k_fn(t, x[: self.scene.dim], args)
 
         def g(t, x, args):
@@ -418,7 +426,7 @@ class _Impact(eqx.Module):
 
     def slot(self, chosen: tuple) -> SlotSpec:
         """`guard(chosen)` as `ContactEvaluation` reads it."""
-        if len(chosen) == len(self.candidates):
+        if set(range(len(self.candidates))) <= set(chosen):
             return SlotSpec(GAP, self.k)
         return SlotSpec(SELECTED, self.k, choice=self.choice(), chosen=chosen)
 
@@ -929,13 +937,24 @@ def contact_system(
                     T0 = imp.target(0)
                     term = UNBUILT + set_name(scene, T0)
                     terminals[term] = None
-                    others = tuple(c for c in range(len(imp.candidates)) if c not in chosen)
+                    # With the candidates not found, the impact that no candidate solves (-1).
+                    others = tuple(c for c in range(len(imp.candidates)) if c not in chosen) + (-1,)
                     transitions.append(
                         Transition(
                             src, term, guard=imp.guard(others), name=f"impact {cname}: {src} -> {term}"
                         )
                     )
                     spec(imp.slot(others))
+                elif len(chosen) > 1:
+                    # Every candidate was found, so each transition reads the choice: an impact that
+                    # no candidate solves (dependent constraints, or rounding at a tie) stops the
+                    # execution there, naming it, rather than pass through the constraint.
+                    term = f"{INCONSISTENT}impact of {cname} in {src}"
+                    terminals[term] = None
+                    transitions.append(
+                        Transition(src, term, guard=imp.guard((-1,)), name=f"impact {cname}: {term}")
+                    )
+                    spec(imp.slot((-1,)))
             else:
                 c, T, ok, text = items[0]
                 if ok:
