@@ -48,7 +48,7 @@ def solve(a: Float[Array, "n n"], b: Float[Array, "n ..."]) -> Float[Array, "n .
 
 
 def det(a: Float[Array, "n n"]) -> Float[Array, ""]:
-    """$\det a$: the product of the pivots of `solve`'s elimination, signed by its row
+    r"""$\det a$: the product of the pivots of `solve`'s elimination, signed by its row
     exchanges."""
     a = jnp.asarray(a)
     n = a.shape[-1]

@@ -594,10 +594,10 @@ def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
 
 
 class FrictionSystem(ContactSystem):
-    """The `ContactSystem` of a scene with friction: `states` gives, for each mode, the state of
+    r"""The `ContactSystem` of a scene with friction: `states` gives, for each mode, the state of
     every constraint (`None` open, `"held"`, `"stick"`, `"slip+"`, `"slip-"`; `None` for the
     whole entry of a terminal mode). `contact_forces` reports a slipping contact's tangential
-    column as its friction force $-\\mu s \\lambda_n$."""
+    column as its friction force $-\mu s \lambda_n$."""
 
     states: tuple = eqx.field(static=True)
 

@@ -48,10 +48,10 @@ class ReleaseChoice(eqx.Module):
 
 
 class SlotSpec(eqx.Module):
-    """One watched function of a mode: `kind` GAP (constraint `index`'s gap), FORCE (row
+    r"""One watched function of a mode: `kind` GAP (constraint `index`'s gap), FORCE (row
     `index`'s contact force plus `offset`), CONSTANT (`offset`), or SELECTED (constraint
     `index`'s gap where the impact's `choice`, a candidate index, is in `chosen`, and
-    |gap| + 1 elsewhere: the impacts that share one guard $a_k \\le 0$ and differ in which
+    |gap| + 1 elsewhere: the impacts that share one guard $a_k \le 0$ and differ in which
     contacts the impact releases)."""
 
     kind: str = eqx.field(static=True)

@@ -80,7 +80,7 @@ def kkt_solve(M, top, J, bottom, mask, least_norm=False):
 
 
 class Kinematics(NamedTuple):
-    """What every solve of a scene at one state shares: the mass matrix $M$, the applied forces
+    r"""What every solve of a scene at one state shares: the mass matrix $M$, the applied forces
     $f$, and the rows' gaps $a$, Jacobian $J$, rates $\dot a$ and bias $c$
     (`constraint_kinematics`), with the velocity $\dot q$."""
 
@@ -97,7 +97,7 @@ class Kinematics(NamedTuple):
 
 
 def kinematics(scene, fns, t, q, dq, args) -> Kinematics:
-    """The `Kinematics` of the rows `fns` at (t, q, dq), with $M^{-1} f$, $W = M^{-1} J^\top$
+    r"""The `Kinematics` of the rows `fns` at (t, q, dq), with $M^{-1} f$, $W = M^{-1} J^\top$
     and $G = J W$ from one `small_linalg.spd_solve`: every solve at this state reuses them."""
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
@@ -158,7 +158,7 @@ _INDEPENDENT = 1e-9  # `gram_independence` below this: dependent
 
 
 def impact_candidate(kin: Kinematics, held, e, involved, gap_rows, least_norm=False):
-    """Whether the impact with the rows `held` held solves it, and its rates $\dot a^+$: on the
+    r"""Whether the impact with the rows `held` held solves it, and its rates $\dot a^+$: on the
     gap rows of the constraints involved (`gap_rows`: the source set's and the impacting
     one's) the held impulses are >= 0 and the released rates >= 0 (each to 1e-9 of its scale
     over the rows `involved`), and the held rows are independent (`gram_independence`; not
@@ -189,8 +189,9 @@ def release_choice(kin: Kinematics, held_masks, e, involved, gap_rows, least_nor
 def selection_guard(a, taken):
     r"""The guard of one of the impacts that share the gap $a$ and differ in the release
     candidate they take: $a$ where $a > 0$ and where the impact takes this candidate
-    (`taken`), $|a| + 1$ elsewhere. Exactly one of them crosses zero where $a$ does; while
-    $a > 0$ none depends on the choice, so the choice is needed only where some $a \le 0$."""
+    (`taken`), $|a| + 1$ elsewhere. The builders give every outcome, "no candidate solves it"
+    included, one such guard, so exactly one of them crosses zero where $a$ does; while $a > 0$
+    none depends on the choice, so the choice is needed only where some $a \le 0$."""
     return jnp.where((a > 0) | taken, a, jnp.abs(a) + 1.0)
 
 
