@@ -38,6 +38,20 @@ def _pad(v: jax.Array, n: int) -> jax.Array:
     return v if v.shape[0] == n else jnp.concatenate([v, jnp.zeros((n - v.shape[0],), v.dtype)])
 
 
+def select_by_mode(mode, rows, size: int, fill, dtype) -> jax.Array:
+    """(size,): entry s is `rows[mode][s]`, `fill` where `mode`'s row is shorter; `rows[m]` the
+    scalars of mode m. Selected elementwise by `mode` (under `jax.vmap`, selects that fuse; a
+    gather by a traced index is slow on XLA:CPU)."""
+    out = []
+    for s in range(size):
+        v = jnp.full((), fill, dtype)
+        for m, row in enumerate(rows):
+            if s < len(row):
+                v = jnp.where(mode == m, row[s], v)
+        out.append(v)
+    return jnp.stack(out) if out else jnp.zeros((0,), dtype)
+
+
 def dispatch(index, branches: list[Callable], *operands):
     """`lax.switch(index, branches, *operands)` with inactive branches' gradients cut."""
     if len(branches) == 1:
@@ -188,14 +202,8 @@ class Kernels:
     def _slots(self, mode, values, fill, dtype) -> jax.Array:
         """Slot s of `mode`: values[mode_watch[mode][s]], `fill` where `mode` has fewer;
         `values` indexable by watched function (an array or a list)."""
-        out = []
-        for s in range(self.num_slots):
-            v = jnp.full((), fill, dtype)
-            for m, own in enumerate(self.mode_watch):
-                if s < len(own):
-                    v = jnp.where(mode == m, values[own[s]], v)
-            out.append(v)
-        return jnp.stack(out) if out else jnp.zeros((0,), dtype)
+        rows = [[values[w] for w in own] for own in self.mode_watch]
+        return select_by_mode(mode, rows, self.num_slots, fill, dtype)
 
     def reset(self, k, t, y, args) -> jax.Array:
         """R_k(t, y) on the padded state, transition index `k` traced."""

@@ -48,6 +48,7 @@ from jax import lax
 from .._analysis.search import box_samples
 from .._core import small_linalg as small_linalg
 from .._definition.indexed import ModeIndexed
+from .._definition.kernels import select_by_mode
 from .._definition.system import Mode, Transition
 from .indexed import _by_mode
 from .mechanics import (
@@ -893,14 +894,8 @@ class FrictionEvaluation(ModeIndexed):
                 return selection_guard(speed(sp), go)
             return jnp.asarray(sp.offset, y.dtype)
 
-        out = []
-        for slot in range(max(map(len, self.slots), default=0)):
-            v = jnp.ones((), y.dtype)
-            for m, specs in enumerate(self.slots):
-                if slot < len(specs):
-                    v = jnp.where(mode == m, value(specs[slot]), v)
-            out.append(v)
-        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
+        rows = [[value(sp) for sp in specs] for specs in self.slots]
+        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n, K = self.scene.dim, len(self.scene.constraints)

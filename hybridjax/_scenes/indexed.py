@@ -20,7 +20,7 @@ import numpy as np
 from jax import lax
 
 from .._definition.indexed import ModeIndexed
-from .._definition.kernels import dispatch
+from .._definition.kernels import dispatch, select_by_mode
 from .mechanics import (
     acceleration,
     impact_map,
@@ -153,16 +153,10 @@ class ContactEvaluation(ModeIndexed):
             source.append(src_row)
             offset.append(off_row)
         values = jnp.concatenate([*values, jnp.zeros((1,), y.dtype)])
-        # Slot s of `mode`: values[source] + offset; an unused slot reads 0 + 1. Selected by
-        # `mode` elementwise (a gather by a traced index is slow under `jax.vmap` on XLA:CPU).
-        out = []
-        for slot in range(max(map(len, self.slots), default=0)):
-            v = jnp.ones((), y.dtype)
-            for m, (src_row, off_row) in enumerate(zip(source, offset, strict=True)):
-                if slot < len(src_row):
-                    v = jnp.where(mode == m, values[src_row[slot]] + off_row[slot], v)
-            out.append(v)
-        return jnp.stack(out) if out else jnp.zeros((0,), y.dtype)
+        # Slot s of `mode`: values[source] + offset; an unused slot reads 1.
+        rows = [[values[i] + o for i, o in zip(src, off, strict=True)]
+                for src, off in zip(source, offset, strict=True)]
+        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
 
     def _choices(self, kin, choices, args, dtype):
         """`release_choice` of each impact in `choices` ((held, hit, involved, gap_rows) tuples)
