@@ -175,11 +175,8 @@ def friction_solve(scene: Scene, rows_mask, sign, t, q, dq, args, least_norm=Fal
 
 def friction_acceleration(scene: Scene, kin, mu, rows_mask, sign, least_norm=False):
     """`friction_solve` from the state's `mechanics.Kinematics` (all rows) and coefficients."""
-    _, _, tan, _, _ = _layout(scene)
-    K, n = len(scene.constraints), scene.dim
-    J = kin.J
-    slip = mu * sign
-    W = J.at[:K].add(-slip[:, None] * (jnp.asarray(tan, J.dtype) @ J))
+    n, J = scene.dim, kin.J
+    W = force_columns(scene, J, mu, sign)
     m = rows_mask
     lhs = jnp.block([[kin.M, -(m[:, None] * W).T], [m[:, None] * J, jnp.diag(1.0 - m)]])
     rhs = jnp.concatenate([kin.f, -m * kin.bias])
@@ -217,11 +214,17 @@ def slip_consistency(scene: Scene, rows_mask, sign, t, q, args):
     return consistency(scene, kin, friction_coefficients(scene, args, q.dtype), rows_mask, sign)
 
 
+def force_columns(scene: Scene, J, mu, sign):
+    r"""$W$: the rows' generalised force directions, $J$ except on a slipping contact's normal
+    row, $W_k = J_k - \mu_k s_k J_{t,k}$."""
+    K, tan = len(scene.constraints), _layout(scene)[2]
+    return J.at[:K].add(-(mu * sign)[:, None] * (jnp.asarray(tan, J.dtype) @ J))
+
+
 def consistency(scene: Scene, kin, mu, rows_mask, sign):
     """`slip_consistency` from the state's `mechanics.Kinematics` (all rows)."""
-    tan = _layout(scene)[2]
-    K, J = len(scene.constraints), kin.J
-    W = J.at[:K].add(-(mu * sign)[:, None] * (jnp.asarray(tan, J.dtype) @ J))
+    J = kin.J
+    W = force_columns(scene, J, mu, sign)
     m = rows_mask
     G = m[:, None] * m[None, :] * (J @ small_linalg.spd_solve(kin.M, W.T)) + jnp.diag(1.0 - m)
     return small_linalg.det(G)
