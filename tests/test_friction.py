@@ -5,6 +5,7 @@ import functools
 import math
 
 import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -270,3 +271,106 @@ def test_rod_lands_slips_back_lands_and_stops_as_computed_by_hand():
     # At rest on both ends: lambda_n = m g / 2 each, no tangential force (columns left, right,
     # left.t).
     np.testing.assert_allclose(rod.contact_forces(sol), [[G / 2, G / 2, 0.0]], atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- Painleve's paradox
+
+# A uniform rod (I = m h^2 / 3, h = L / 2) slipping with sign s on its left end at angle phi has
+# the normal equation's coefficient D / (m I), D = I + m h^2 cos(phi) (cos(phi) + mu s sin(phi)),
+# which is <= 0 somewhere only for mu > 4/3 (D0 = I + m h^2 cos(phi)^2 without friction). With
+# mu = 2 and s = -1, D = 0 at phi* = 0.652. The execution ends where D = RHO D0 (docs: Scenes,
+# Painleve's paradox).
+PAINLEVE_MU, RHO = 2.0, 1e-6
+
+
+@functools.cache
+def painleve_system():
+    # The rod with its left end only: its slip states and their terminal modes.
+    rod = examples.rod_scene(friction=("left",))
+    scene = hj.Scene(
+        rod.dim,
+        rod.mass,
+        rod.forces,
+        rod.constraints[:1],
+        q_range=rod.q_range,
+        dq_range=rod.dq_range,
+        names=rod.names,
+    )
+    return hj.contact_system(scene, ["left:slip-"], dict(ROD_ARGS, mu=jnp.asarray(PAINLEVE_MU)))
+
+
+def slip_on_left_end_by_hand(x0, phi0, vx0, mu, t_end, L=1.0, g=G):
+    """The rod slipping to -x on its left end (z = h sin phi, m = 1), from phi0 at rest in phi,
+    integrated with scipy towards the jam D = I + m h^2 cos(phi) (cos(phi) - mu sin(phi)) = 0:
+    I phi'' = -h lambda_n (cos phi - mu sin phi), m x'' = mu lambda_n and
+    lambda_n = m g + m h (cos(phi) phi'' - sin(phi) phi'^2) (phi'' and lambda_n grow as 1 / D).
+    Returns the time D falls to RHO (I + m h^2 cos(phi)^2) and the state (x, phi, x', phi')
+    then; checks that the end slips to -x and lambda_n > 0 on the way."""
+    from scipy.integrate import solve_ivp
+
+    m, I, h = 1.0, L**2 / 12, L / 2
+
+    def rates(t, y):
+        x, phi, vx, w = y
+        c, sn = math.cos(phi), math.sin(phi)
+        k = c - mu * sn
+        ddphi = -h * k * m * (g - h * sn * w * w) / (I + m * h * h * c * k)
+        lam_n = m * g + m * h * (c * ddphi - sn * w * w)
+        return [vx, w, mu * lam_n / m, ddphi], lam_n
+
+    def jam(t, y):
+        c, sn = math.cos(y[1]), math.sin(y[1])
+        return I + m * h * h * c * (c - mu * sn) - RHO * (I + m * h * h * c * c)
+
+    def end_speed(t, y):
+        return y[2] + h * math.sin(y[1]) * y[3]
+
+    jam.terminal, jam.direction = True, -1
+    sol = solve_ivp(
+        lambda t, y: rates(t, y)[0],
+        (0.0, t_end),
+        [x0, phi0, vx0, 0.0],
+        events=[jam],
+        rtol=1e-12,
+        atol=1e-12,
+        dense_output=True,
+    )
+    assert len(sol.t_events[0]) == 1
+    for t in np.linspace(0.0, sol.t_events[0][0], 50):
+        y = sol.sol(t)
+        assert end_speed(t, y) < 0 and rates(t, y)[1] > 0
+    return sol.t_events[0][0], sol.y_events[0][0]
+
+
+@pytest.mark.slow
+def test_painleve_jam_ends_blocked_at_the_time_computed_by_hand():
+    rod = painleve_system()
+    h, I = 0.5, 1.0 / 12
+    # The watched value is det(J M^-1 W^T) - RHO det(J M^-1 J^T) = (D - RHO D0) / (m I), either sign.
+    painleve = {tr.source: tr for tr in rod.transitions if tr.name.startswith("painleve")}
+    for s, state in ((-1, "left:slip-"), (1, "left:slip+")):
+        for phi in (-0.9, 0.0, 0.4, 0.652, 0.9):
+            x = jnp.array([0.0, h * math.sin(phi), phi, -1.0, 0.0, 0.0])
+            D = I + h * h * math.cos(phi) * (math.cos(phi) + PAINLEVE_MU * s * math.sin(phi))
+            D0 = I + h * h * math.cos(phi) ** 2
+            assert float(painleve[state].guard(0.0, x, dict(ROD_ARGS, mu=PAINLEVE_MU))) == pytest.approx(
+                (D - RHO * D0) / I, abs=1e-12
+            )
+    t_jam, (x_j, phi_j, vx_j, w_j) = slip_on_left_end_by_hand(0.0, 0.62, -20.0, PAINLEVE_MU, 1.0)
+    args = dict(ROD_ARGS, mu=jnp.asarray(PAINLEVE_MU))
+    run = jax.jit(
+        lambda x0: hj.simulate(
+            rod, x0, rod.mode_index("left:slip-"), 0.0, 1.0, args, stepsize_controller=TIGHT, max_epochs=4
+        )
+    )
+    # Slipping into the jam: the execution ends there, BLOCKED, in the terminal mode.
+    sol = run(jnp.array([0.0, h * math.sin(0.62), 0.62, -20.0, 0.0, 0.0]))
+    assert sol.status == hj.Status.BLOCKED
+    assert mode_names(rod, sol) == ["left:slip-", "inconsistent: left:slip-"]
+    assert float(sol.event_times[0]) == pytest.approx(t_jam, abs=1e-9)
+    np.testing.assert_allclose(np.asarray(sol.final_state)[[0, 2, 3, 5]], [x_j, phi_j, vx_j, w_j], rtol=1e-7)
+    # Started inside the inconsistent region: blocked at once, the state kept, no NaN.
+    x0 = jnp.array([0.0, h * math.sin(0.9), 0.9, -5.0, 0.0, 0.0])
+    sol = run(x0)
+    assert sol.status == hj.Status.BLOCKED and float(sol.event_times[0]) == 0.0
+    np.testing.assert_array_equal(sol.final_state, x0)

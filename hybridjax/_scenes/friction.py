@@ -21,7 +21,8 @@ conditions, each boundary of a domain a guard):
   projected onto the new constraints), and otherwise slips the other way (identity reset);
 - lift-off $\lambda_n \le 0$ and impacts as for frictionless contacts;
 - the slip mode's normal equation is consistent while $\det(J_n M^{-1} (J_n - \mu s J_t)^\top)
-  > 0$ on the held rows (positive without friction); where it reaches 0 (Painleve's paradox) the
+  > 0$ on the held rows (positive without friction); where it falls to `PAINLEVE_RATIO` times
+  its frictionless value $\det(J_n M^{-1} J_n^\top)$ (Painleve's paradox, approached) the
   execution goes to a terminal mode `"inconsistent: <mode>"` and ends with `Status.BLOCKED`.
 
 Impacts act on the normal rows only (no tangential impulse on frictional contacts; a
@@ -82,6 +83,11 @@ SIGN = {SLIP_POS: 1.0, SLIP_NEG: -1.0}
 # Sliding speeds within this fraction of 1 + max |dq| of 0 when another contact stops count as
 # stopped with it (a flat body's two ends stop at one instant, up to rounding).
 _SPEED_TIE = 1e-8
+# Where the slip equation's determinant falls to this fraction of its frictionless value, the
+# execution ends (Painleve's paradox). Not at 0: the normal force and the acceleration grow as
+# 1 / det there, so an integrator's steps collapse before det reaches 0 and a guard at 0 would
+# never be crossed. At this ratio the normal force is about 1e6 times its frictionless value.
+PAINLEVE_RATIO = 1e-6
 
 
 # ----------------------------------------------------------------------------- layout and states
@@ -208,8 +214,11 @@ def _search_impact(kin, held_rows, e, n):
 
 
 def slip_consistency(scene: Scene, rows_mask, sign, t, q, args):
-    r"""$\det(J M^{-1} W^\top)$ on the held rows (1 on the others): positive without friction;
-    where it reaches 0 the slip mode's contact forces are undetermined (Painleve's paradox)."""
+    r"""The Painleve guard of a slip state, on the held rows (identity on the others):
+    $\det(J M^{-1} W^\top) - \rho \det(J M^{-1} J^\top)$, $W$ from `force_columns`, $\rho$ =
+    `PAINLEVE_RATIO`. Positive without friction; where it reaches 0 the slip mode's contact
+    forces are about $1/\rho$ times their frictionless values, and undetermined where the first
+    determinant reaches 0 (Painleve's paradox)."""
     kin = kinematics(scene, _layout(scene)[0], t, q, jnp.zeros_like(q), args)
     return consistency(scene, kin, friction_coefficients(scene, args, q.dtype), rows_mask, sign)
 
@@ -223,11 +232,13 @@ def force_columns(scene: Scene, J, mu, sign):
 
 def consistency(scene: Scene, kin, mu, rows_mask, sign):
     """`slip_consistency` from the state's `mechanics.Kinematics` (all rows)."""
-    J = kin.J
-    W = force_columns(scene, J, mu, sign)
     m = rows_mask
-    G = m[:, None] * m[None, :] * (J @ small_linalg.spd_solve(kin.M, W.T)) + jnp.diag(1.0 - m)
-    return small_linalg.det(G)
+    held, free = m[:, None] * m[None, :], jnp.diag(1.0 - m)
+    # W = F J (`force_columns` is linear in J), so J M^-1 W^T = G F^T with G = J M^-1 J^T.
+    F = force_columns(scene, jnp.eye(kin.J.shape[0], dtype=kin.J.dtype), mu, sign)
+    coupled = held * (kin.G @ F.T) + free
+    frictionless = held * kin.G + free
+    return small_linalg.det(coupled) - PAINLEVE_RATIO * small_linalg.det(frictionless)
 
 
 def stop_decision(scene: Scene, state: tuple, j: int, kin, mu, dq):
