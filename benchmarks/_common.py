@@ -27,7 +27,7 @@ def machine_info() -> dict:
         pass
     return dict(
         cpu=cpu, cores=os.cpu_count(), platform=platform.platform(),
-        device=str(jax.devices()[0]), num_devices=len(jax.devices()), python=platform.python_version(),
+        device=str(jax.devices()[0]), device_kind=jax.devices()[0].device_kind, num_devices=len(jax.devices()), python=platform.python_version(),
         jax=jax.__version__, diffrax=diffrax.__version__, equinox=equinox.__version__,
         numpy=numpy.__version__, x64=bool(jax.config.jax_enable_x64),
         xla_flags=os.environ.get("XLA_FLAGS", ""),

@@ -636,6 +636,65 @@ def property_checks(res: dict) -> list[str]:
 PAGES["property_checks"] = property_checks
 
 
+def gpu_throughput(res: dict) -> list[str]:
+    runs = res["runs"]
+    m = runs[0]["machine"]
+    out = _page("gpu_throughput", "On one GPU", runs[0], "gpu_throughput.py",
+                f"Problem A (the bouncing ball, Tsit5, rtol = atol = 1e-9, float64) on one "
+                f"{m.get('device_kind', m['device'])}, N executions in one batch: hybridjax's batched engine "
+                "(`simulate_batch(engine=\"batched\")`, with its default block and with one block of every "
+                "execution; the run with one block at N = 1,000,000 was cut short by its time limit), hybridjax per execution (`jax.vmap(simulate)`, which `simulate_batch` runs on a GPU), "
+                "the plain diffrax lock-step loop (`diffeqsolve` + `diffrax.Event` per epoch, vmapped; no event "
+                "record, saves or statuses) and the jitted closed form (no integration: the speed limit). Best "
+                "of the runs after the compiling call; errors of the final state against the closed form in "
+                f"numpy on {runs[0]['checked']:,} executions drawn from the batch (wrong: a different number of "
+                "bounces). Each table is one process; compare within a table.")
+    for i, run in enumerate(runs):
+        rm = run["machine"]
+        out += [f"## Run {i + 1}: {rm.get('device_kind', rm['device'])}, jax {rm['jax']}, best of {run['rounds']}", ""]
+        out += _gpu_table(run["rows"])
+    out += [f"![executions per second against N]({_plot_gpu_throughput(res)})", ""]
+    return out
+
+
+def _gpu_table(rows: dict) -> list[str]:
+    sizes = sorted({int(n) for r in rows.values() for n in r})
+    lock = rows.get("diffrax lock-step loop", {})
+    body = []
+    for n in sizes:
+        for name, r in rows.items():
+            row = r.get(str(n))
+            if row is None:
+                continue
+            if "run_s" not in row:
+                body.append([f"{n:,}", name, "out of memory", "", "", ""])
+                continue
+            base = lock.get(str(n), {})
+            ratio = f"{row['exec_per_s'] / base['exec_per_s']:.3g}" if "exec_per_s" in base else ""
+            err = "-" if row["error"] != row["error"] else f"{row['error']:.0e}"
+            wrong = f" ({row['wrong']} wrong)" if row["wrong"] else ""
+            body.append([f"{n:,}", name, _rate(row["exec_per_s"]), ratio, f"{row['compile_s']:.1f}", err + wrong])
+    return _table(["N", "way", "executions / s", "x lock-step loop", "compile (s)", "max error"], body)
+
+
+def _plot_gpu_throughput(res: dict) -> str:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    names = list(dict.fromkeys(name for run in res["runs"] for name in run["rows"]))
+    for name, marker in zip(names, "osd^v", strict=False):
+        pts = sorted((int(n), row["exec_per_s"]) for run in res["runs"] for n, row in run["rows"].get(name, {}).items()
+                     if "exec_per_s" in row)
+        if pts:
+            ax.loglog(*zip(*pts, strict=True), "-" + marker, label=name)
+    ax.set(xlabel="executions in the batch (N)", ylabel="executions / s", title="problem A on one GPU (every run)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, "gpu_throughput.png")
+
+
+PAGES["gpu_throughput"] = gpu_throughput
+
+
 def main():
     DOCS.mkdir(parents=True, exist_ok=True)
     for name, page in PAGES.items():

@@ -255,3 +255,10 @@ def test_implicit_solver_gradient_in_the_batched_engine():
 
     h0 = jnp.array([1.0, 0.5, 0.8])
     np.testing.assert_allclose(jax.grad(first_impacts)(h0), 1 / np.sqrt(2 * 9.8 * h0), rtol=1e-7)
+
+
+def test_auto_engine_is_the_batched_one_on_cpu_only():
+    from hybridjax._solve.simulate_batch import auto_engine
+
+    assert auto_engine("cpu") == "batched"
+    assert auto_engine("gpu") == "vmap" and auto_engine("tpu") == "vmap"

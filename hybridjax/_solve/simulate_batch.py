@@ -127,7 +127,8 @@ def simulate_batch(
     - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
-      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `"batched"` where it applies).
+      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `auto_engine`, `"batched"` on CPU
+      where it applies, `"vmap"` on a GPU or TPU).
       Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
       controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
     - `saveat`: as `simulate`; the same save times for every execution, but
@@ -217,6 +218,8 @@ def simulate_batch(
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
     m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
+    if engine == "auto":
+        engine = auto_engine(_devices(devices, N)[0].platform)
     if engine == "vmap" or refusal is not None:
         def one(x, m, a, s, e):
             return simulate(system, x, m, s, e, a, saveat=saveat, zeno=zeno,
@@ -295,6 +298,18 @@ def simulate_batch(
         **out, status=as_status(status), ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
     )
+
+
+def auto_engine(platform: str) -> str:
+    """The engine `engine="auto"` takes where the batched engine applies, by the platform of the
+    devices the executions run on: `"batched"` on `"cpu"`, `"vmap"` elsewhere.
+
+    The batched loop keeps every execution's state as one vector per component and does the
+    rare work (epoch start, root location, reset) on gathered blocks, pass after pass: on a few
+    CPU cores that saves the work of executions not needing it. On a GPU the per-execution
+    loop under `jax.vmap` runs each iteration as wide as the batch with no gathering, and is
+    the faster of the two (docs: Benchmarks, On one GPU)."""
+    return "batched" if platform == "cpu" else "vmap"
 
 
 def _devices(devices, N: int) -> list:
