@@ -1,10 +1,11 @@
 """Monte Carlo over many executions: chunked, sharded across devices, streamed to the host.
 
-Each chunk of executions is one call of a jitted `simulate_batch` (the batched engine, or
-`vmap(simulate)` where it does not apply), its batch axis sharded over `jax.devices()`
-with `jax.sharding` (GPUs, or CPU devices asked for with
-`jax.config.update("jax_num_cpu_devices", N)` right after `import jax`), each device running
-the batched loop on its part (`simulate_batch(devices=...)`). After each chunk only small
+Each chunk of executions is one call of a jitted `simulate_batch` (on CPU the batched engine,
+or `vmap(simulate)` where it does not apply; on GPUs `vmap(simulate)`), its batch axis sharded
+over `jax.devices()` with `jax.sharding` (GPUs, or CPU devices asked for with
+`jax.config.update("jax_num_cpu_devices", N)` right after `import jax`): on CPU devices each
+runs the batched loop on its part (`simulate_batch(devices=...)`); on GPUs XLA partitions the
+vmapped loop along the sharded batch axis. After each chunk only small
 per-execution results (status, events, final time/mode/state, Zeno time) come back to the
 host, and running summaries are updated, so memory stays bounded however many executions run;
 `keep="summary"` keeps nothing per execution.
