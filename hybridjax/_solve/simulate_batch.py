@@ -127,8 +127,8 @@ def simulate_batch(
     - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
       has a leading axis N (execution i sees `args[i]`).
     - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
-      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: `auto_engine`, `"batched"` on CPU
-      where it applies, `"vmap"` on a GPU or TPU).
+      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: by the platform of the devices,
+      `"batched"` on CPU where it applies, `"vmap"` on a GPU or TPU).
       Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
       controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
     - `saveat`: as `simulate`; the same save times for every execution, but
@@ -218,8 +218,9 @@ def simulate_batch(
     if engine == "batched" and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
     m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
+    available = _devices(devices, N)
     if engine == "auto":
-        engine = auto_engine(_devices(devices, N)[0].platform)
+        engine = auto_engine(available[0].platform)
     if engine == "vmap" or refusal is not None:
         def one(x, m, a, s, e):
             return simulate(system, x, m, s, e, a, saveat=saveat, zeno=zeno,
@@ -243,7 +244,7 @@ def simulate_batch(
     # conversion compares the inputs' sharding metadata, which shard_map changes (equinox
     # 0.13.8; upstream: patrick-kidger/equinox#1261, diffrax#765). It runs on one device.
     reverse = differentiated and kind == "checkpointed"
-    devs = _devices(devices, N)[:1 if reverse else None]
+    devs = available[:1 if reverse else None]
     D = len(devs)
     per_device = -(-N // D)  # executions per device (the last ones padded by repeating the last)
     if lanes is not None:
