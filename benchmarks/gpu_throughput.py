@@ -29,7 +29,6 @@ the run to those already in the output file (each run is reported as its own tab
 import argparse
 import json
 import pathlib
-import time
 
 import diffrax
 import jax
@@ -37,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 import problems as P
 from _baselines import diffrax_lockstep
-from _common import machine_info
-from work_precision import ball_closed_form_jax, runner
+from _common import machine_info, timed
+from work_precision import ball_closed_form_jax, errors, runner
 
 import hybridjax as hj
 
@@ -73,24 +72,11 @@ def ways(prob):
     }
 
 
-def measure(fn, read, x, m, rounds, idx, truths):
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(x, m))
-    first = time.perf_counter() - t
-    runs = []
-    for _ in range(rounds):
-        t = time.perf_counter()
-        out = jax.block_until_ready(fn(x, m))
-        runs.append(time.perf_counter() - t)
-    ne, fs = (np.asarray(a) for a in read(out))
-    ne, fs = ne[idx], fs[idx].astype(np.float64)
-    ref_fs = np.stack([tr["final_state"] for tr in truths])
-    ref_ne = np.array([tr["num_events"] for tr in truths])
-    ok = ne == ref_ne
-    best = min(runs)
-    return dict(compile_s=max(first - best, 0.0), run_s=best, exec_per_s=len(x) / best,
-                error=float(np.max(np.abs(fs[ok] - ref_fs[ok]))) if ok.any() else float("nan"),
-                wrong=int((~ok).sum()))
+def measure(prob, fn, read, x, m, rounds, idx, truths):
+    compile_s, run_s, out = timed(fn, x, m, repeat=rounds)
+    ne, fs = (np.asarray(a)[idx] for a in read(out))
+    error, wrong = errors(prob, truths, fs, ne)
+    return dict(compile_s=compile_s, run_s=run_s, exec_per_s=len(x) / run_s, error=error, wrong=wrong)
 
 
 def main():
@@ -118,7 +104,7 @@ def main():
         x, m = jnp.asarray(x_all[:n]), jnp.asarray(m_all[:n])
         for name, (fn, read) in fns.items():
             try:
-                row = measure(fn, read, x, m, a.rounds, idx, truths)
+                row = measure(prob, fn, read, x, m, a.rounds, idx, truths)
             except Exception as err:  # out of the accelerator's memory: recorded, the next way goes on
                 if "RESOURCE_EXHAUSTED" not in str(err) and "out of memory" not in str(err).lower():
                     raise
