@@ -39,6 +39,28 @@ def test_batch_of_1000_random_initial_conditions():
     np.testing.assert_allclose(sol.event_times[:, 0], first, atol=1e-8)
 
 
+def test_lanes_far_out_of_phase_match_their_solo_runs_and_the_closed_form():
+    # Under vmap an execution that needs the event phase waits for the others (at most
+    # MAX_WAIT iterations); with heights over four orders of magnitude the lanes' events fall
+    # at unrelated iterations, so they wait. Each lane's events must be those of its own run.
+    h0 = np.array([0.002, 0.05, 1.0, 40.0])
+    x0 = jnp.asarray(np.stack([h0, np.zeros_like(h0)], axis=1))
+    solo = ball_runner(3.0)
+    many = jax.jit(jax.vmap(solo.__wrapped__, in_axes=(0, None)))(x0, BALL_ARGS)
+    for i, h in enumerate(h0):
+        one = solo(x0[i], BALL_ARGS)
+        n = int(one.num_events)
+        assert int(many.num_events[i]) == n and int(many.status_code[i]) == int(one.status_code)
+        np.testing.assert_allclose(many.event_times[i, :n], one.event_times[:n], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(many.final_state[i], one.final_state, rtol=0, atol=1e-12)
+        ref = ball_reference(h, 0.0, 9.8, 0.8, 3.0)
+        m = min(n, len(ref["event_times"]))
+        np.testing.assert_allclose(one.event_times[:m], ref["event_times"][:m], rtol=0, atol=1e-8)
+    # the two low balls are Zeno before t1 (t_inf = 9 sqrt(2 h0 / g)); the others reach t1
+    np.testing.assert_array_equal(np.asarray(many.status_code),
+                                  [hj.STATUS_NAMES.index("ZENO")] * 2 + [0, 0])
+
+
 def test_vmapped_restitution_coefficients():
     es = jnp.linspace(0.3, 0.9, 16)
     run = ball_runner(2.0).__wrapped__

@@ -112,6 +112,21 @@ def test_start_decision_fires_inside_or_trending_in_and_disarms_departing_guards
     assert not bool(fire[0]) and float(g_start[0]) == 1.0
 
 
+def test_unresolved_departure_fires_a_guard_that_turns_back_within_the_resolution():
+    # g(s) = L0 + L1 s + L2 s^2 / 2 with L1 = 2, L2 = -4: apex at s* = 0.5, value L0 + 0.5.
+    # tol_t = 0.4: resolved (s* > tol_t, apex 0.5 > 0); tol_t = 0.6: unresolved (s* <= tol_t);
+    # L0 = -0.6 (inside the band of a wide band): the apex -0.1 <= 0, never positive.
+    jets = _jets([0.0, 0.0, -0.6, 0.0, 0.0], [2.0, 2.0, 2.0, -2.0, 2.0], [-4.0, -4.0, -4.0, -4.0, 4.0], band=1.0)
+    tol = jnp.array([0.4, 0.6, 0.4, 0.6, 0.6])
+    got = jax.vmap(lambda j, t: R.unresolved_departure(j, t))(jets, tol)
+    # falling (L1 < 0) or accelerating away (L2 > 0): not a departure that turns back
+    np.testing.assert_array_equal(got, [False, True, True, False, False])
+    fire, _ = R.start_decision(jets, jnp.ones(5, bool), EPS, 0.5)
+    np.testing.assert_array_equal(fire, [True, True, True, True, False])  # the 4th falls (L1 < 0)
+    fire, _ = R.start_decision(jets, jnp.ones(5, bool), EPS, 0.4)
+    np.testing.assert_array_equal(fire, [False, False, True, True, False])
+
+
 def test_departure_step_bound_is_the_return_time_halved():
     # g(s) = L1 s + L2 s^2 / 2 returns to 0 at s = 2 L1 / |L2| = 1.0; half of it: 0.5
     jets = _jets([0.0, 0.0], [2.0, 2.0], [-4.0, -4.0])

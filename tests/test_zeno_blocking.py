@@ -258,3 +258,30 @@ def test_truncation_example_settles_after_finitely_many_bounces():
     np.testing.assert_allclose(sol.event_times[:n], ref["bounce_times"], atol=1e-8)
     np.testing.assert_allclose(sol.event_times[n], ref["settle_time"], atol=1e-8)
     assert int(sol.transitions[n]) == 0  # "settle"
+
+
+@pytest.mark.parametrize("engine", ["simulate", "batched"])
+def test_zeno_tail_without_detection_ends_chattering_at_the_accumulation_time(engine):
+    # The chapter's ball with Zeno detection off: the bounces shrink geometrically below the
+    # resolution of t. Each bounce's departure then turns back within the event-time tolerance
+    # and fires at once (`unresolved_departure`), so the run ends CHATTERING at t_inf on the
+    # floor, never below it with its guard unseen.
+    e = 1 / math.sqrt(2)
+    kw = dict(zeno=False, max_epochs=1000)
+    if engine == "simulate":
+        sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 3.0, {"g": 9.8, "e": e}, **kw)
+        status, t_end, x_end = sol.status_code, sol.final_time, sol.final_state
+        times = np.asarray(sol.event_times)[: int(sol.num_events)]
+    else:
+        sol = hj.simulate_batch(BALL, jnp.array([[1.0, 0.0]]), "flight", 0.0, 3.0, {"g": 9.8, "e": e},
+                                engine="batched", **kw)
+        status, t_end, x_end = sol.status_code[0], sol.final_time[0], sol.final_state[0]
+        times = np.asarray(sol.event_times[0])[: int(sol.num_events[0])]
+    t_inf = examples.zeno_time(1.0, 9.8, e)
+    assert int(status) == hj.STATUS_NAMES.index("CHATTERING")
+    assert float(x_end[0]) >= -1e-12  # on the floor, not inside its guard
+    np.testing.assert_allclose(float(t_end), t_inf, atol=1e-9)
+    assert len(times) > 50 and np.all(times <= t_inf + 1e-9)
+    # the first bounces at the closed form's times, t_k = t_inf - sqrt(2 h0 / g) 2 e^k / (1 - e), k >= 1
+    k = np.arange(1, 6)
+    np.testing.assert_allclose(times[:5], t_inf - math.sqrt(2 / 9.8) * 2 * e**k / (1 - e), atol=1e-9)

@@ -1,25 +1,36 @@
-"""The execution loop: one bounded/checkpointed while loop whose iterations are solver steps.
+"""The execution loop: one bounded/checkpointed while loop whose iterations are solver steps,
+with the rare work of an execution (its events and epoch starts) in a separate phase.
 
-Each iteration of one execution does, in order:
+Each iteration does, in order:
 
-1. `start_stage` (only at the start of an epoch): decide whether a guard fires at once
-   (a zero-length epoch, `_rules.start.epoch_start`); if not, choose the epoch's first step.
-2. `step_stage`: one step of the diffrax solver with diffrax's step-size controller; on an
-   accepted step, `detect` crossings on the dense interpolant, `locate` the first one,
-   `save` the requested times in the step, and `jump` (record the event and apply the reset).
+1. `event_phase`, where it is due (`due`): for every execution waiting for it, `resolve_stage`
+   locates the first event on its held step's dense output and jumps (record the event, apply
+   the reset), or accepts the step; then `start_stage`, at the start of an epoch, decides
+   whether a guard fires at once (a zero-length epoch, `_rules.start.epoch_start`) and if not
+   chooses the epoch's first step.
+2. `step_stage`, the hot path: one step of the solver with its step-size controller for every
+   execution not waiting; the watched values at the step's samples and the crossing and dip
+   tests (`detect`). A step without a candidate is accepted (and its save times written); a
+   step with one is held, and the execution waits for the event phase.
+3. `flush`: the events of the phase written into the max_epochs-long `EventRecord`.
 
-An epoch is therefore one diffrax integration (diffrax's own `solver.step`,
-`stepsize_controller.adapt_step_size` and dense interpolation) ended by an event. The loop is
-equinox's internal while loop, `checkpointed` for reverse mode (as diffrax's
-`RecursiveCheckpointAdjoint`), `lax` for forward mode, `bounded` for both: a bare
-`lax.while_loop` cannot be reverse-differentiated.
+Alone, an execution enters the event phase at the iteration after it needs it, so its
+sequence of steps and events is the same as a loop that locates each event at once. Under
+`jax.vmap` the phase runs when every running execution waits for it, or when one has waited
+`MAX_WAIT` iterations: its cost (root searches, Lie derivatives, resets) is then paid once for
+many executions, where a `lax.cond` taken whenever any execution needs it would be taken at
+almost every iteration of a large batch. Only the small per-execution state passes through
+the phase's `lax.cond` (a conditional copies what it passes through).
 
-Cost under `vmap` is the cost of each iteration's operations over the whole batch, so the
-loop keeps them few: guards are sampled on the dense output at constant fractions of the
-step (its polynomials fold at compile time), the root and minimum searches run under a
-`lax.cond` taken only when some execution needs them, and events are recorded as "pending"
-in the small loop state and written into the max_epochs-long `EventRecord` once per
-iteration, so that the many per-execution selects of an iteration never copy the record.
+An epoch is therefore one integration by the solver's own `step`, the controller's
+`adapt_step_size` and dense interpolation, ended by an event. The loop is equinox's internal
+while loop, `checkpointed` for reverse mode (as diffrax's `RecursiveCheckpointAdjoint`), `lax`
+for forward mode, `bounded` for both: a bare `lax.while_loop` cannot be reverse-differentiated.
+The guards are sampled on the dense output at constant fractions of the step (for an explicit
+Runge-Kutta solver, constant weights of its stages: `dense_weights`), and the event phase
+evaluates an explicit solver's dense output as a Chebyshev series of its stages
+(`ChebyshevDense`): elementwise arithmetic, where diffrax's interpolation is a small matrix
+product per evaluation.
 
 Event times are differentiated by the implicit function theorem with the true vector field,
 dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder's
@@ -52,12 +63,18 @@ from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import ZenoOptions, detect_zeno
-from .._step.runge_kutta import UnrolledERK
+from .._step.runge_kutta import UnrolledERK, weighted_sum
+from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
 # consecutive indices (all rows otherwise).
 SAVE_WINDOW = 16
+# Under `jax.vmap`, the most iterations an execution waits for the event phase (`Loop.body`).
+MAX_WAIT = 16
+# Events an event phase can record before they are written into the record: a jump and a Zeno
+# completion after a held step, then the same at the next epoch's start.
+PEND_SLOTS = 4
 
 
 class LoopState(eqx.Module):
@@ -78,9 +95,9 @@ class LoopState(eqx.Module):
     num_rejected: jax.Array
     done: jax.Array
     status: Status
-    # Events recorded in this iteration (at most two: a jump and a Zeno completion), written
-    # into the `EventRecord` once at the end of the iteration. Keeping the max_epochs-long
-    # record out of the state keeps it out of the many per-execution selects of an iteration.
+    # Events recorded in an event phase (at most PEND_SLOTS), written into the `EventRecord`
+    # once at the end of the phase. Keeping the max_epochs-long record out of the state keeps
+    # it out of the many per-execution selects of the phase.
     pend_count: jax.Array
     pend_at: jax.Array
     pend_time: jax.Array
@@ -95,6 +112,18 @@ class LoopState(eqx.Module):
     zeno_state: jax.Array
     recent_times: jax.Array  # the last zeno_window + 2 event times, oldest first (Zeno test)
     recent_states: jax.Array  # the last 3 post-event states
+    # A step whose samples show a crossing or a dip, held for the event phase (`Loop.event_phase`):
+    # the execution stays at the step's start (t, y) until the phase locates its event.
+    pending: jax.Array  # () bool
+    waited: jax.Array  # () int32: iterations spent waiting for the event phase
+    p_t0: jax.Array  # the step's start (after `clip_to_times`) and end
+    p_t1: jax.Array
+    p_y1: jax.Array
+    p_dense: Any  # the solver's dense-output coefficients of the step
+    p_solver_state: Any
+    p_made_jump: jax.Array
+    p_g_end: jax.Array  # (K + W,) the watched values at the step's end
+    p_det: Detection
 
 
 class EventRecord(eqx.Module):
@@ -161,6 +190,7 @@ class Loop:
         self.kern = Kernels(system, args, dtype)
         self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
         self.zeno = zeno
+        self.max_wait = MAX_WAIT
         self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
         self.t1 = t1
@@ -171,6 +201,10 @@ class Loop:
         # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
         # with the controller's last proposal (`first_step`).
         self.carry_step = carries_step(dt0, isinstance(solver, UnrolledERK | diffrax.AbstractERK))
+        # An explicit RK's dense output in the event phase as a Chebyshev series of its stages
+        # (elementwise arithmetic; diffrax's interpolation is a small matrix product per call).
+        self.cheb = (chebyshev_weights(solver.interpolation_cls, len(solver.c) + 1, dtype)
+                     if isinstance(solver, UnrolledERK) else None)
         self.save_ts = save_ts
         self.max_epochs = max_epochs
         self.max_steps = max_steps
@@ -202,6 +236,10 @@ class Loop:
         _, controller_state = self.controller.init(
             self.terms, t0, self.t1, y0, self.dt0, args_ext, self.solver.func, self.error_order()
         )
+        W = self.kern.num_watch
+        # The shapes of a step's dense-output coefficients (no step is computed here).
+        dense = jax.eval_shape(lambda: self.solver.step(
+            self.terms, t0, t0 + 1, y0, args_ext, solver_state, jnp.array(True))[2])
         return LoopState(
             t=t0,
             y=y0,
@@ -219,26 +257,37 @@ class Loop:
             done=jnp.array(False),
             status=Status.T1_REACHED,
             pend_count=jnp.array(0, jnp.int32),
-            pend_at=jnp.zeros((2,), jnp.int32),
-            pend_time=jnp.zeros((2,), dtype),
-            pend_transition=jnp.zeros((2,), jnp.int32),
-            pend_before=jnp.zeros((2, n), dtype),
-            pend_after=jnp.zeros((2, n), dtype),
-            pend_target=jnp.zeros((2,), jnp.int32),
-            pend_simultaneous=jnp.zeros((2,), bool),
-            pend_grazing=jnp.zeros((2,), bool),
-            pend_inside=jnp.zeros((2,), bool),
+            pend_at=jnp.zeros((PEND_SLOTS,), jnp.int32),
+            pend_time=jnp.zeros((PEND_SLOTS,), dtype),
+            pend_transition=jnp.zeros((PEND_SLOTS,), jnp.int32),
+            pend_before=jnp.zeros((PEND_SLOTS, n), dtype),
+            pend_after=jnp.zeros((PEND_SLOTS, n), dtype),
+            pend_target=jnp.zeros((PEND_SLOTS,), jnp.int32),
+            pend_simultaneous=jnp.zeros((PEND_SLOTS,), bool),
+            pend_grazing=jnp.zeros((PEND_SLOTS,), bool),
+            pend_inside=jnp.zeros((PEND_SLOTS,), bool),
             zeno_time=jnp.array(jnp.inf, dtype),
             zeno_state=jnp.full((n,), jnp.inf, dtype),
             recent_times=jnp.full((self.recent,), jnp.inf, dtype),
             recent_states=jnp.full((3, n), jnp.inf, dtype),
+            pending=jnp.array(False),
+            waited=jnp.array(0, jnp.int32),
+            p_t0=jnp.zeros((), dtype),
+            p_t1=jnp.zeros((), dtype),
+            p_y1=jnp.zeros((n,), dtype),
+            p_dense=jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), dense),
+            p_solver_state=solver_state,
+            p_made_jump=jnp.array(False),
+            p_g_end=jnp.zeros((W,), dtype),
+            p_det=Detection(jnp.zeros((W,), bool), jnp.zeros((W,), jnp.int32), jnp.zeros((W,), bool),
+                            jnp.zeros((W,), jnp.int32), jnp.zeros((W,), dtype)),
         )
 
     # ----------------------------------------------------------------- jump
     def _record(self, st: LoopState, index, t_ev, y_before, y_after, target, simultaneous, grazing,
                 inside=False):
         """Record an event (as pending: `flush` writes it into the EventRecord)."""
-        slot = jnp.arange(2) == st.pend_count
+        slot = jnp.arange(PEND_SLOTS) == st.pend_count
 
         def put(arr, value):
             return _put_rows(arr, slot, value)
@@ -286,7 +335,7 @@ class Loop:
     def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
         """Write the pending events of this iteration into the record (`_put_rows`)."""
         E = self.max_epochs
-        for slot in range(2):
+        for slot in range(PEND_SLOTS):
             i = jnp.where(slot < st.pend_count, st.pend_at[slot], E + 1)
             row, row_m = jnp.arange(E) == i, jnp.arange(E + 1) == i + 1
 
@@ -396,10 +445,81 @@ class Loop:
         return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
 
     # ----------------------------------------------------------------- one step
-    def step_stage(self, st: LoopState):
-        """One step; returns the new state and `save`, which writes this step's saved states
-        into an `EventRecord`."""
-        active = ~st.done & ~st.at_start
+    def _samples(self, kern, mode, t, t_next, y0, y1, dense_info, args_sg):
+        """The sample times of a step (start, `interior_points` interior points, end), the dense
+        output there and the watched values with their slopes along the step."""
+        m = self.interior_points
+        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
+        s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
+        s_ext = jnp.concatenate([sg(t)[None], s])
+        one = jnp.ones_like(s_ext[0])
+        # The dense output on the unit interval, at constant fractions theta: its polynomials
+        # in theta fold to constants at compile time, leaving one weighted sum of the stages
+        # per sample (the same values as on [t, t_next]: diffrax's stages are increments).
+        h_safe = jnp.maximum(sg(t_next - t), jnp.finfo(self.dtype).tiny)
+        thetas = np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])
+        if isinstance(self.solver, UnrolledERK):
+            # An explicit RK's dense output is linear in (y0, y1, k_i): the weights at each
+            # fraction as constants (`dense_weights`), each sample one elementwise sum, which
+            # fuses with the step (a matrix product per sample is a pass over the stages each).
+            d = sg(dense_info)
+            ks = [d["k"][i] for i in range(d["k"].shape[0])]
+            value, slope = dense_weights(self.solver.interpolation_cls, len(ks), thetas, self.dtype)
+
+            def combine(w):
+                a, b, c = w
+                return jnp.asarray(a, self.dtype) * d["y0"] + jnp.asarray(b, self.dtype) * d["y1"] + \
+                    weighted_sum(c, ks, d["y0"])
+
+            samples = [(combine(v), combine(sl)) for v, sl in zip(value, slope, strict=True)]
+        else:
+            unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
+            samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,)) for th in thetas]
+        ys_e = jnp.stack([y for y, _ in samples]).at[0].set(sg(y0)).at[-1].set(sg(y1))
+        yd_e = jnp.stack([yd for _, yd in samples]) / h_safe
+        G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
+            lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
+        return s_ext, G_e, D_e
+
+    def _save(self, saved, mask, mode, interp, t, t_next):
+        """Write the states at the save times selected by `mask` (inside [t, t_next]) from the
+        step's dense output `interp` into `saved`, the record's `(ys, saved_modes)`."""
+        if not self.save_ts.shape[0]:
+            return saved
+        rec_ys, rec_modes = saved
+
+        def put_all(ys):
+            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
+            return _put_rows(ys, mask, vals)
+
+        S = self.save_ts.shape[0]
+        i0 = jnp.argmax(mask)  # the first save row in this step
+        span = jnp.where(jnp.any(mask), S - jnp.argmax(mask[::-1]) - i0, 0)
+
+        def put_few(ys):
+            # Every execution's save rows in this step lie in i0 .. i0 + SAVE_WINDOW - 1:
+            # evaluate the interpolant there (not at all S rows), then place row s from
+            # window slot s - i0 with one gather.
+            idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
+            tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
+            vals = jax.vmap(interp.evaluate)(tt)
+            slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
+            return _put_rows(ys, mask, vals[slot])
+
+        def put(ys):
+            few = eqxi.unvmap_max(span) <= SAVE_WINDOW
+            return lax.cond(few, put_few, put_all, ys)
+
+        # Most steps of most executions contain no save time: skip the interpolation then.
+        ys = lax.cond(eqxi.unvmap_any(mask), put, lambda ys: ys, rec_ys)
+        return ys, jnp.where(mask, mode, rec_modes)
+
+    def step_stage(self, st: LoopState, saved):
+        """One step of every execution that is not waiting for the event phase: the solver's
+        step, the step-size decision, the watched values at the step's samples and the crossing
+        and dip tests on them. A step without a crossing or dip candidate is accepted here (and
+        its save times written); one with a candidate is held (`pending`) for `event_phase`."""
+        active = ~st.done & ~st.at_start & ~st.pending
         # Executions that do not step here still compute a step (vmap); their inputs get no
         # gradient, so a NaN in their discarded results cannot reach one (double where).
         st_all = st
@@ -418,35 +538,14 @@ class Loop:
         keep, nt0, nt1, made_jump, ctrl_state, _ = self.controller.adapt_step_size(
             t, t_next, st.y, y1, args_ext, y_err, self.error_order(), st.controller_state
         )
-        finite_y1 = jnp.all(jnp.isfinite(y1))
-
-        # detect: guards on the interpolant at interior points and at the end of the step.
-        interp = self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
-        interp_sg = self.solver.interpolation_cls(t0=sg(t), t1=sg(t_next), **sg(dense_info))
-        args_sg = sg(args)
-        m = self.interior_points
-        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
-        s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
-        s_ext = jnp.concatenate([sg(t)[None], s])
-        one = jnp.ones_like(s_ext[0])
-        # The dense output on the unit interval, at constant fractions theta: its polynomials
-        # in theta fold to constants at compile time, leaving one weighted sum of the stages
-        # per sample (the same values as on [t, t_next]: diffrax's stages are increments).
-        unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
-        h_safe = jnp.maximum(sg(t_next - t), jnp.finfo(self.dtype).tiny)
-        samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,))
-                   for th in np.concatenate([[0.0], np.arange(1, m + 2) / (m + 1)])]
-        ys_e = jnp.stack([y for y, _ in samples]).at[0].set(sg(st.y)).at[-1].set(sg(y1))
-        yd_e = jnp.stack([yd for _, yd in samples]) / h_safe
-        # Watched values and their slopes along the step at the start, interior points, end.
-        G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
-            lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
+        # detect: watched values at the start, interior points and end of the step.
+        s_ext, G_e, D_e = self._samples(kern, mode, t, t_next, st.y, y1, dense_info, sg(args))
         G = G_e[1:]
         # A non-finite value anywhere in the step rejects it and shrinks it (`nonfinite_step`);
         # the controller's NaN error and proposal are not used.
         h = sg(t_next - t)
-        finite, h_new, stuck = nonfinite_step(finite_y1, jnp.all(jnp.isfinite(G)), nt1 - nt0, h, sg(t),
-                                              self.eps)
+        finite, h_new, stuck = nonfinite_step(jnp.all(jnp.isfinite(y1)), jnp.all(jnp.isfinite(G)), nt1 - nt0,
+                                              h, sg(t), self.eps)
         keep = keep & finite
         h_new = sg(h_new).astype(self.dtype)
         ctrl_state = _select(finite, ctrl_state, st.controller_state)
@@ -456,62 +555,9 @@ class Loop:
         # the end tangents allow it, the minimum is searched for on the interpolant.
         suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e, s_ext)
         has = has & ok
-        det = Detection(has, j, dip_filter(has, j, suspect & ok, i_d), i_d, x0_d)
-        tol = event_time_tol(self.event_tol, sg(t_next), h, self.eps)
-
-        def values_at(x):
-            return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
-
-        if kern.num_watch:
-            # locate: only when some execution in the batch has an event in this step.
-            br = event_brackets(values_at, det, s_ext, tol)
-            t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next))
-            any_event = jnp.any(br.has)
-        else:
-            t_star, k, simultaneous = sg(t_next), jnp.array(0, jnp.int32), jnp.array(False)
-            any_event = jnp.array(False)
-        ev_active = active & any_event
-        if kern.num_watch:
-            dense_e, args_e, t_e, t_next_e = mask_inputs(ev_active, (dense_info, args, t, t_next))
-            interp_e = self.solver.interpolation_cls(t0=t_e, t1=t_next_e, **dense_e)
-            t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp_e, args_e)
-
-        # save: requested times inside (t, t_end], t_end the event time or the step's end;
-        # applied to the record by `body` (see `EventRecord`).
-        def save(rec: EventRecord) -> EventRecord:
-            if not self.save_ts.shape[0]:
-                return rec
-            t_end = jnp.where(any_event, t_star, sg(t_next))
-            # From the step's start before `clip_to_times` moved it past a jump time: a save
-            # time in between is saved (at the moved start).
-            mask = keep & active & saved_in_step(self.save_ts, sg(st.t), t_end)
-
-            def put_all(ys):
-                vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
-                return _put_rows(ys, mask, vals)
-
-            S = self.save_ts.shape[0]
-            i0 = jnp.argmax(mask)  # the first save row in this step
-            span = jnp.where(jnp.any(mask), S - jnp.argmax(mask[::-1]) - i0, 0)
-
-            def put_few(ys):
-                # Every execution's save rows in this step lie in i0 .. i0 + SAVE_WINDOW - 1:
-                # evaluate the interpolant there (not at all S rows), then place row s from
-                # window slot s - i0 with one gather.
-                idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
-                tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
-                vals = jax.vmap(interp.evaluate)(tt)
-                slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
-                return _put_rows(ys, mask, vals[slot])
-
-            def put(ys):
-                few = eqxi.unvmap_max(span) <= SAVE_WINDOW
-                return lax.cond(few, put_few, put_all, ys)
-
-            # Most steps of most executions contain no save time: skip the interpolation then.
-            ys = lax.cond(eqxi.unvmap_any(mask), put, lambda ys: ys, rec.ys)
-            saved_modes = jnp.where(mask, mode, rec.saved_modes)
-            return eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, saved_modes))
+        det = Detection(has, j.astype(jnp.int32), dip_filter(has, j, suspect & ok, i_d),
+                        i_d.astype(jnp.int32), x0_d)
+        held = ok & (jnp.any(det.has) | jnp.any(det.suspect))
 
         counted = eqx.tree_at(
             lambda s: (s.h, s.controller_state, s.num_steps, s.num_rejected),
@@ -524,45 +570,129 @@ class Loop:
             (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
         )
         accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
-        K = kern.num_transitions
-        if kern.num_watch:
-            # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
-            blocked = eqx.tree_at(lambda s: (s.t, s.y), counted, (t_ev, y_before))
-            evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
-        else:
-            evented = accepted
-        if K:
-            counted_e = mask_inputs(ev_active & ~blocks(k, K), counted)
-            jumped = self.jump(
-                counted_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
-                args_e, grazing,
-            )
-            evented = _select(blocks(k, K), evented, jumped)
-        progressed = _select(keep, _select(any_event, evented, accepted), counted)
+        pending = eqx.tree_at(
+            lambda s: (s.pending, s.waited, s.p_t0, s.p_t1, s.p_y1, s.p_dense, s.p_solver_state,
+                       s.p_made_jump, s.p_g_end, s.p_det),
+            counted,
+            (jnp.array(True), jnp.array(0, jnp.int32), t, t_next, y1, dense_info, solver_state,
+             made_jump, G[-1], det),
+        )
+        progressed = _select(keep, _select(held, pending, accepted), counted)
         # A non-finite step that cannot be shrunk any further stops the run at the step's
-        # start, where everything was finite.
-        new = _stop(_select(stuck, counted, progressed),
-                    *step_stops(stuck, finite, h_new, sg(t), self.eps, progressed.num_steps, self.max_steps))
-        return _select(active, new, st_all), save
+        # start, where everything was finite. A held step's stops are decided with its event.
+        stops = step_stops(stuck, finite, h_new, sg(t), self.eps, progressed.num_steps, self.max_steps)
+        new = _stop(_select(stuck, counted, progressed), *[(p & ~held, s) for p, s in stops])
+        interp = self.dense(t, t_next, dense_info)
+        saved = self._save(saved, keep & active & ~held & saved_in_step(self.save_ts, sg(st.t), sg(t_next)),
+                           mode, interp, t, t_next)
+        return _select(active, new, st_all), saved
 
-    # ----------------------------------------------------------------- the loop
+    def dense(self, t, t_next, dense_info):
+        """The step's dense output on [t, t_next]: a `ChebyshevDense` for an explicit RK,
+        diffrax's interpolation otherwise."""
+        if self.cheb is not None:
+            d = dense_info
+            return ChebyshevDense.from_stages(self.cheb, t, t_next, d["y0"], d["y1"],
+                                              [d["k"][i] for i in range(d["k"].shape[0])])
+        return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+
+    def resolve_stage(self, st: LoopState, saved):
+        """The held steps: locate the first event on each step's dense output (`event_brackets`,
+        `first_event`), take its event point and jump, or accept the step where the candidate
+        was a dip that stays positive; save the step's save times up to the event."""
+        active = st.pending & ~st.done
+        st_all = st
+        st, args = mask_inputs(active, (st, self.args))
+        kern, mode = self.kern, st.mode
+        t, t_next, dense_info = st.p_t0, st.p_t1, st.p_dense
+        interp = self.dense(t, t_next, dense_info)
+        interp_sg = self.dense(sg(t), sg(t_next), sg(dense_info))
+        args_sg = sg(args)
+        m = self.interior_points
+        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
+        s_ext = jnp.concatenate([sg(t)[None], sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
+        h = sg(t_next - t)
+        tol = event_time_tol(self.event_tol, sg(t_next), h, self.eps)
+
+        def values_at(x):
+            return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
+
+        det = jtu.tree_map(lambda a: jnp.where(active, a, jnp.zeros_like(a)), st.p_det)
+        br = event_brackets(values_at, det, s_ext, tol)
+        t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next))
+        any_event = jnp.any(br.has)
+        t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp, args)
+        t_end = jnp.where(any_event, t_star, sg(t_next))
+        saved = self._save(saved, active & saved_in_step(self.save_ts, sg(st.t), t_end), mode, interp, t,
+                           t_next)
+
+        base = eqx.tree_at(lambda s: s.pending, st, jnp.array(False))
+        accepted = eqx.tree_at(
+            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
+            base,
+            (t_next, st.p_y1, st.p_solver_state, st.p_made_jump, st.p_g_end, jnp.array(0, jnp.int32)),
+        )
+        accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
+        # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
+        blocked = eqx.tree_at(lambda s: (s.t, s.y), base, (t_ev, y_before))
+        evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
+        K = kern.num_transitions
+        if K:
+            base_e = mask_inputs(active & any_event & ~blocks(k, K), base)
+            jumped = self.jump(base_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
+                               args, grazing)
+            evented = _select(blocks(k, K), evented, jumped)
+        progressed = _select(any_event, evented, accepted)
+        new = _stop(progressed, *step_stops(jnp.array(False), jnp.array(True), st.h, sg(t), self.eps,
+                                            progressed.num_steps, self.max_steps))
+        return _select(active, new, st_all), saved
+
+    def event_phase(self, carry):
+        """The rare work, for every execution waiting for it at once: the held steps' events
+        (`resolve_stage`), then the start test of each new epoch (`start_stage`). Events are
+        recorded as pending (`flush` writes them); `carry` is `(state, (ys, saved_modes))`."""
+        st, saved = carry
+        if self.kern.num_watch:
+            st, saved = self.resolve_stage(st, saved)
+        st = self.start_stage(st)
+        return eqx.tree_at(lambda s: s.waited, st, jnp.zeros_like(st.waited)), saved
+
+    # ----------------------------------------------------------------- the loops
+    def due(self, st: LoopState):
+        """Whether the event phase is due: every running execution waits for it, or one has
+        waited `max_wait` iterations (under `jax.vmap`, one decision for the whole batch)."""
+        waiting = (st.pending | st.at_start) & ~st.done
+        return eqxi.unvmap_all(waiting | st.done) | (eqxi.unvmap_max(jnp.where(waiting, st.waited, 0))
+                                                     >= self.max_wait)
+
     def body(self, carry):
+        """One iteration: the event phase where it is due (`due`), then a step of every
+        execution not waiting for it (`step_stage`), then the phase's events written into the
+        record (`flush`). Only the small per-execution state passes through the phase's
+        `lax.cond` (a conditional copies what it passes through; the saved states only where
+        there are save times)."""
         st, rec = carry
-        new, save = self.step_stage(self.start_stage(st))
-        new = _select(st.done, st, new)
-        rec = self.flush(save(rec), new)
-        return eqx.tree_at(lambda s: s.pend_count, new, jnp.zeros_like(new.pend_count)), rec
+        st, saved = lax.cond(self.due(st), self.event_phase, lambda c: c, (st, (rec.ys, rec.saved_modes)))
+        new, (ys, saved_modes) = self.step_stage(st, saved)
+        rec = self.flush(eqx.tree_at(lambda r: (r.ys, r.saved_modes), rec, (ys, saved_modes)), new)
+        still = (new.pending | new.at_start) & ~new.done
+        new = eqx.tree_at(lambda s: (s.waited, s.pend_count), new,
+                          (jnp.where(still, new.waited + 1, 0), jnp.zeros_like(new.pend_count)))
+        return new, rec
 
     def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
         carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
+        # Steps, zero-length epochs, and the waits for the event phase: alone, an execution
+        # never waits; under vmap at most max_wait iterations before each event or epoch start
+        # (a held step whose dip stays positive waits too, and is not counted here).
+        bound = self.max_steps + (self.max_epochs + 2) * (self.max_wait + 2)
         st, rec = eqxi.while_loop(
             lambda c: ~c[0].done,
             self.body,
             carry,
-            max_steps=self.max_steps + self.max_epochs + 2,
+            max_steps=bound,
             kind=self.loop_kind,
             checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
         )
         # The loop's own bound can only be met by executions that are still running.
         return _stop(st, (jnp.array(True), Status.MAX_STEPS)), rec
-

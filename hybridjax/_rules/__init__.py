@@ -75,6 +75,7 @@ from .start import first_step as first_step
 from .start import start_decision as start_decision
 from .start import strictly_inside as strictly_inside
 from .start import trending_negative as trending_negative
+from .start import unresolved_departure as unresolved_departure
 from .status import stop_first as stop_first
 from .step import nonfinite_step as nonfinite_step
 from .step import step_collapsed as step_collapsed

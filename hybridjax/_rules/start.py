@@ -32,15 +32,34 @@ def strictly_inside(jets) -> jax.Array:
     return jets.L0 < -jets.band
 
 
-def start_decision(jets, outgoing, eps):
+def unresolved_departure(jets, tol_t) -> jax.Array:
+    """Per watched function, whether a guard that departs to first order (L1 > 0) comes back
+    before an event could be told apart from the start: along its Taylor polynomial
+    L0 + L1 s + L2 s^2 / 2 (L2 < 0) the apex lies at s* = L1 / |L2|, and the departure is
+    unresolved when s* <= tol_t (the return, at 2 s*, within two event-time tolerances) or
+    when the apex value L0 + L1^2 / (2 |L2|) is <= 0 (the guard never becomes positive). The
+    tail of a Zeno execution reaches it: a ball whose bounces last less than the resolution of
+    t would otherwise step through the floor with its guard never seen positive."""
+    L1, L2 = jets.L1, jets.L2
+    turns = (L1 > 0) & (L2 < 0)
+    safe = jnp.where(turns, -L2, 1.0)
+    apex_time = L1 / safe
+    apex_value = jets.L0 + 0.5 * L1 * apex_time
+    return turns & ((apex_time <= tol_t) | (apex_value <= 0))
+
+
+def start_decision(jets, outgoing, eps, tol_t=0.0):
     """Which guards fire at the start of an epoch, and the guards' starting values.
 
-    Returns `(fire, g_start)`: `fire` (K,) bool; `g_start` (K,) the value each guard starts
-    the epoch with, 0 for departing (disarmed) guards, +1 for guards not leaving the mode.
+    A guard fires when the state lies strictly inside it (`strictly_inside`), or within the
+    band of it and trending negative (`trending_negative`) or departing unresolvably
+    (`unresolved_departure`, with the event-time tolerance tol_t). Returns `(fire, g_start)`:
+    `fire` (K,) bool; `g_start` (K,) the value each guard starts the epoch with, 0 for
+    departing (disarmed) guards, +1 for guards not leaving the mode.
     """
     L0, band = jets.L0, jets.band
     in_band = jnp.abs(L0) <= band
-    neg = trending_negative(jets.L1, jets.L2, jets.L3, jets.scale1, eps)
+    neg = trending_negative(jets.L1, jets.L2, jets.L3, jets.scale1, eps) | unresolved_departure(jets, tol_t)
     fire = outgoing & (strictly_inside(jets) | (in_band & neg))
     g_start = jnp.where(outgoing, jnp.where(L0 > band, L0, jnp.zeros_like(L0)), 1.0)
     return fire, g_start
@@ -108,7 +127,7 @@ def epoch_start(
     tol_t = event_time_tol(event_tol, ts, h_prev, eps)
     jets = kern.guard_jets(mode, ts, ys, a_sg, rtol, atol, tol_t)
     outgoing = kern.outgoing_mask(mode)
-    fire, g_start = start_decision(jets, outgoing, eps)
+    fire, g_start = start_decision(jets, outgoing, eps, tol_t)
     F = kern.flow(mode, t, y, args)
     finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets.L0, 0.0)))
     k, simultaneous = resolve_simultaneous(fire, kern.num_transitions)
