@@ -221,6 +221,13 @@ def test_multiple_shooting_keeps_an_epoch_the_start_rule_makes_zero_length():
     np.testing.assert_allclose(result.params, 0.5, rtol=1e-12)
     np.testing.assert_allclose(result.event_times, [2.0, 2.0, 5.0], rtol=1e-12)
     np.testing.assert_allclose(result.epochs.durations, [2.0, 0.0, 3.0], rtol=1e-12)
+    # guessed to flow for 0.1 in B, the epoch cannot shrink to zero length (its guard value is
+    # -1/2 there, deflated to -inf); the round fails, and the restart from the forward execution
+    # holds it at zero length
+    flowing = hj.EpochGuess(guess.states, guess.durations.at[1].set(0.1))
+    result = hj.multiple_shooting(problem, jnp.asarray(0.8), flowing)
+    assert bool(result.success) and int(result.restarts) == 1, result.reason
+    np.testing.assert_allclose(result.epochs.durations, [2.0, 0.0, 3.0], rtol=1e-12)
 
 
 def test_multiple_shooting_options_name_the_culprit():
