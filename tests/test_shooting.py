@@ -236,6 +236,8 @@ def test_multiple_shooting_options_name_the_culprit():
         hj.multiple_shooting(LAUNCH, jnp.asarray(4.0), bad)
     with pytest.raises(ValueError, match="time_rtol"):
         hj.MultipleShootingCheck(time_rtol=-1.0)
+    with pytest.raises(TypeError, match="stepsize_controller"):
+        hj.MultipleShootingCheck(stepsize_controller=1e-10)
     with pytest.raises(ValueError, match="restarts"):
         hj.multiple_shooting(LAUNCH, jnp.asarray(4.0), bad, restarts=-1)
 

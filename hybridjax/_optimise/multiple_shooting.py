@@ -207,6 +207,11 @@ class MultipleShootingCheck(eqx.Module):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not value >= 0:
                 raise ValueError(f"MultipleShootingCheck: {name} must be a number >= 0, got {value!r}.")
+        if not isinstance(self.solver, diffrax.AbstractSolver):
+            raise TypeError(f"MultipleShootingCheck: solver must be a diffrax solver, got {self.solver!r}.")
+        if not isinstance(self.stepsize_controller, diffrax.AbstractStepSizeController):
+            raise TypeError("MultipleShootingCheck: stepsize_controller must be a diffrax step-size "
+                            f"controller, got {self.stepsize_controller!r}.")
         if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:
             raise ValueError(f"MultipleShootingCheck: max_steps must be an int >= 1, got {self.max_steps!r}.")
 
@@ -307,7 +312,8 @@ def _zero_length(guess, k) -> tuple[bool, ...]:
         raise ValueError(f"multiple_shooting: guess.durations must have shape ({k},) for {k} transitions, "
                          f"got {durations.shape}.")
     if not np.all(np.isfinite(durations)) or np.any(durations < 0):
-        raise ValueError(f"multiple_shooting: guess.durations must be finite and >= 0, got {durations}.")
+        raise ValueError(f"multiple_shooting: guess.durations must be finite and >= 0, got {durations} "
+                         "(inf or nan where the solution the guess came from has fewer than k events).")
     return tuple(bool(d == 0) for d in durations)
 
 
