@@ -347,7 +347,7 @@ def _solve(problem, params0, guess, solver, max_steps, zero, check):
     params, states, u = sol.value
     epochs = EpochGuess(states, _durations(u, tau, zero))
     times, befores, guards, cont, targets = parts(params, states, epochs.durations)
-    max_residual = jnp.max(jnp.abs(jnp.concatenate([guards, cont, targets])))
+    max_residual = jnp.max(jnp.abs(jnp.concatenate([guards, cont, targets])), initial=0.0)
     horizon = jnp.maximum(times[-1] - problem.t0, jnp.sum(guess.durations))
     status, execution = _check(problem, params, times, horizon, max_residual, sol.result, check)
     return MultipleShootingResult(params, epochs, times, befores, max_residual, sol.result,
