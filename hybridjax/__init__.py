@@ -34,7 +34,9 @@ from ._optimise.ilqr import HybridLQRProblem as HybridLQRProblem
 from ._optimise.ilqr import hybrid_ilqr as hybrid_ilqr
 from ._optimise.multiple_shooting import EpochGuess as EpochGuess
 from ._optimise.multiple_shooting import MultipleShooting as MultipleShooting
+from ._optimise.multiple_shooting import MultipleShootingCheck as MultipleShootingCheck
 from ._optimise.multiple_shooting import MultipleShootingResult as MultipleShootingResult
+from ._optimise.multiple_shooting import MultipleShootingStatus as MultipleShootingStatus
 from ._optimise.multiple_shooting import multiple_shooting as multiple_shooting
 from ._optimise.shooting import Shooting as Shooting
 from ._optimise.shooting import ShootingResult as ShootingResult

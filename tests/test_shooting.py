@@ -101,11 +101,145 @@ def test_multiple_shooting_over_epochs_finds_the_kth_impact_speed():
     first_guess = hj.simulate(PLANAR, _launch(v0), "flight", 0.0, 20.0, BALL_ARGS, max_epochs=K)
     result = hj.multiple_shooting(problem, v0, hj.EpochGuess.from_solution(first_guess, K))
     assert result.result == optx.RESULTS.successful and float(result.max_residual) < 1e-10
+    assert bool(result.success) and np.all(np.asarray(result.epochs.durations) > 0)
     # RK4 is exact on the quadratic flights: the closed form to rounding
     np.testing.assert_allclose(result.params, V_STAR, rtol=1e-12)
     np.testing.assert_allclose(result.event_times, _flight_times(V_STAR, K), rtol=1e-12)
     np.testing.assert_allclose(result.states_before[:, 0], V_STAR * math.cos(PHI) * _flight_times(V_STAR, K),
                                rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------- multiple shooting, checked
+
+# A ball launched at angle PHI_L with restitution E_L whose third impact lands at x = X_L. After
+# each bounce an epoch starts on its own guard (h = 0, rising): a zero duration meets h = 0 too.
+G_L, E_L, PHI_L, X_L = 9.81, 0.7, 0.6, 5.0
+LAUNCH_ARGS = {"g": jnp.asarray(G_L), "e": jnp.asarray(E_L)}
+
+
+def _launch_l(v):
+    return jnp.stack([0.0 * v, 0.0 * v, v * math.cos(PHI_L), v * math.sin(PHI_L)])
+
+
+def _impacts_by_flights(v, n):
+    """Impact times and x by stepping flight by flight: flight j lasts 2 w_j / g with
+    w_0 = v sin phi, w_{j+1} = e w_j, at the constant horizontal speed v cos phi."""
+    w, t, ts = v * math.sin(PHI_L), 0.0, []
+    for _ in range(n):
+        t += 2 * w / G_L
+        ts.append(t)
+        w *= E_L
+    ts = np.array(ts)
+    return ts, v * math.cos(PHI_L) * ts
+
+
+# x_3 = v^2 sin(2 phi) (1 - e^3) / (g (1 - e)) = X_L
+V_L = math.sqrt(X_L * G_L * (1 - E_L) / (math.sin(2 * PHI_L) * (1 - E_L**3)))
+LAUNCH = hj.MultipleShooting(PLANAR, (0,) * K, _launch_l, lambda v, ts, xs: xs[-1, :1] - X_L,
+                             args=LAUNCH_ARGS, substeps=8)
+# the check's settings, so that the test's forward simulate is the same compiled program
+LAUNCH_CHECK = hj.MultipleShootingCheck(stepsize_controller=TIGHT)
+
+
+def _launch_execution(v, t1):
+    return hj.simulate(PLANAR, _launch_l(jnp.asarray(v)), "flight", 0.0, t1, LAUNCH_ARGS, max_epochs=K + 1,
+                       stepsize_controller=TIGHT)
+
+
+def test_multiple_shooting_launch_finds_the_execution_from_each_guess():
+    # the closed form against an impact-by-impact sum, and the value the problem was posed with
+    np.testing.assert_allclose(_impacts_by_flights(V_L, K)[1][-1], X_L, rtol=1e-14)
+    np.testing.assert_allclose(V_L, 4.902079901814787, rtol=1e-14)
+    for v0 in (3.0, 7.0, 10.0):
+        first = _launch_execution(v0, 40.0)
+        result = hj.multiple_shooting(LAUNCH, jnp.asarray(v0), hj.EpochGuess.from_solution(first, K),
+                                      check=LAUNCH_CHECK)
+        assert bool(result.success), (v0, result.reason)
+        assert np.all(np.asarray(result.epochs.durations) > 0)
+        np.testing.assert_allclose(result.params, V_L, rtol=1e-12)
+        # RK4 is exact on the quadratic flights
+        np.testing.assert_allclose(result.event_times, _impacts_by_flights(V_L, K)[0], rtol=1e-12)
+        forward = _launch_execution(result.params, 40.0)
+        np.testing.assert_array_equal(forward.transitions[:K], [0] * K)
+        np.testing.assert_allclose(result.event_times, forward.event_times[:K], rtol=0, atol=1e-9)
+    # from v = 10 the first round stops short (its last flights shrinking towards zero length)
+    # and the rounds restarted from the forward execution reach v*
+    assert int(result.restarts) >= 1
+
+
+def _up_through():
+    """A ball thrown up from h = 0 (state (h, w)); the transition fires when h reaches H_UP
+    (guard H_UP - h: positive below, crossed into on the way up)."""
+    flight = hj.Mode("flight", lambda t, s, a: jnp.stack([s[1], -G_L + 0.0 * s[1]]), dim=2)
+    above = hj.Mode("above", lambda t, s, a: 0.0 * s, dim=2)
+    return hj.HybridSystem([flight, above], [hj.Transition("flight", "above", guard=lambda t, s, a: 1.0 - s[0])])
+
+
+def test_multiple_shooting_reports_a_root_the_execution_does_not_take():
+    # Target: speed 3 downwards at the event. H - h(T) = 0 also on the way down, at
+    # T = (v + sqrt(v^2 - 2 g H)) / g, where the speed is -sqrt(v^2 - 2 g H): v = sqrt(9 + 2 g H).
+    # The execution from that v takes the transition on the way up, at (v - 3) / g.
+    v = math.sqrt(9 + 2 * G_L)
+    problem = hj.MultipleShooting(_up_through(), (0,), lambda v: jnp.stack([0.0 * v, v]),
+                                  lambda v, ts, xs: xs[0, 1:2] + 3.0)
+    guess = hj.EpochGuess(jnp.zeros((0, 2)), jnp.array([0.95]))
+    result = hj.multiple_shooting(problem, jnp.asarray(5.0), guess, restarts=0)
+    np.testing.assert_allclose(result.params, v, rtol=1e-12)
+    np.testing.assert_allclose(result.event_times, [(v + 3) / G_L], rtol=1e-12)
+    assert float(result.max_residual) < 1e-12 and result.result == optx.RESULTS.successful
+    assert not bool(result.success) and result.status == hj.MultipleShootingStatus.EVENT_TIMES_DIFFER
+    assert "event times" in result.reason
+    np.testing.assert_allclose(result.execution.event_times[0], (v - 3) / G_L, rtol=1e-9)
+    # restarted from that execution (the way up), the target has no root: still a failure
+    restarted = hj.multiple_shooting(problem, jnp.asarray(5.0), guess)
+    assert not bool(restarted.success) and int(restarted.restarts) >= 1
+
+
+def _relay():
+    """x' = p in A until x = 1, reset to x + 1 in B, whose guard 1.5 - x the reset lands inside (B
+    is left at once, a zero-length epoch), x' = -p in C until x = 1/2."""
+    flow = lambda c: lambda t, x, p: c * p["p"] + 0.0 * x   # noqa: E731
+    modes = [hj.Mode("A", flow(1.0), 1), hj.Mode("B", flow(1.0), 1), hj.Mode("C", flow(-1.0), 1),
+             hj.Mode("D", flow(0.0), 1)]
+    return hj.HybridSystem(modes, [
+        hj.Transition("A", "B", guard=lambda t, x, p: 1.0 - x[0], reset=lambda t, x, p: x + 1.0),
+        hj.Transition("B", "C", guard=lambda t, x, p: 1.5 - x[0]),
+        hj.Transition("C", "D", guard=lambda t, x, p: x[0] - 0.5)])
+
+
+def test_multiple_shooting_keeps_an_epoch_the_start_rule_makes_zero_length():
+    # Events at 1/p, 1/p (zero-length epoch in B) and 1/p + 1.5/p: the last at t = 5 for p = 1/2.
+    relay = _relay()
+    problem = hj.MultipleShooting(relay, (0, 1, 2), jnp.zeros(1), lambda p, ts, xs: ts[-1:] - 5.0,
+                                  args=lambda p: {"p": p})
+    first = hj.simulate(relay, jnp.zeros(1), "A", 0.0, 10.0, {"p": jnp.asarray(0.8)}, max_epochs=4,
+                        stepsize_controller=TIGHT)
+    guess = hj.EpochGuess.from_solution(first, 3)
+    np.testing.assert_allclose(guess.durations, [1.25, 0.0, 1.875], rtol=1e-9)
+    result = hj.multiple_shooting(problem, jnp.asarray(0.8), guess)
+    assert bool(result.success), result.reason
+    np.testing.assert_allclose(result.params, 0.5, rtol=1e-12)
+    np.testing.assert_allclose(result.event_times, [2.0, 2.0, 5.0], rtol=1e-12)
+    np.testing.assert_allclose(result.epochs.durations, [2.0, 0.0, 3.0], rtol=1e-12)
+    # guessed to flow for 0.1 in B, the epoch cannot shrink to zero length (its guard value is
+    # -1/2 there, deflated to -inf); the round fails, and the restart from the forward execution
+    # holds it at zero length
+    flowing = hj.EpochGuess(guess.states, guess.durations.at[1].set(0.1))
+    result = hj.multiple_shooting(problem, jnp.asarray(0.8), flowing)
+    assert bool(result.success) and int(result.restarts) == 1, result.reason
+    np.testing.assert_allclose(result.epochs.durations, [2.0, 0.0, 3.0], rtol=1e-12)
+
+
+def test_multiple_shooting_options_name_the_culprit():
+    bad = hj.EpochGuess(jnp.zeros((K - 1, 4)), jnp.array([0.5, -0.1, 0.3]))
+    with pytest.raises(ValueError, match="guess.durations"):
+        hj.multiple_shooting(LAUNCH, jnp.asarray(4.0), bad)
+    with pytest.raises(ValueError, match="time_rtol"):
+        hj.MultipleShootingCheck(time_rtol=-1.0)
+    with pytest.raises(TypeError, match="stepsize_controller"):
+        hj.MultipleShootingCheck(stepsize_controller=1e-10)
+    with pytest.raises(ValueError, match="restarts"):
+        hj.multiple_shooting(LAUNCH, jnp.asarray(4.0), bad, restarts=-1)
 
 
 # ----------------------------------------------------------------------------- thermostat
