@@ -29,6 +29,8 @@ from ._definition.system import Mode as Mode
 from ._definition.system import Transition as Transition
 from ._definition.system import ZenoCompletion as ZenoCompletion
 from ._definition.validation import DefinitionError as DefinitionError
+from ._estimation.kalman import KalmanResult as KalmanResult
+from ._estimation.kalman import SaltedKalmanFilter as SaltedKalmanFilter
 from ._optimise.ilqr import HybridILQRResult as HybridILQRResult
 from ._optimise.ilqr import HybridLQRProblem as HybridLQRProblem
 from ._optimise.ilqr import hybrid_ilqr as hybrid_ilqr
