@@ -137,3 +137,24 @@ def test_batch_of_filters_on_a_noisy_ball_is_consistent_and_beats_the_reset_upda
     rms_s = np.sqrt(np.mean(err_s[:, after] ** 2, axis=(0, 1)))
     rms_r = np.sqrt(np.mean(err_r[:, after] ** 2, axis=(0, 1)))
     assert np.all(rms_s < rms_r), (rms_s, rms_r)
+
+
+def test_log_likelihood_gradient_in_noise_and_model_parameters_matches_finite_differences():
+    kf = hj.SaltedKalmanFilter(hj.examples.bouncing_ball(), _height, stepsize_controller=TIGHT)
+    ts = np.array([0.2, 0.42, 0.5, 0.6, 0.75])
+    ys = np.array([[0.81], [0.14], [0.15], [0.42], [0.6]])
+
+    def loglik(theta):
+        log_r, e = theta[0], theta[1]
+        R = jnp.exp(log_r) * jnp.eye(1)
+        res = kf(X0, P0_BALL, ts, ys, 1e-6 * jnp.eye(2), R, t0=0.0, args={"g": G, "e": e})
+        return res.log_likelihood
+
+    theta = jnp.array([np.log(1e-3), 0.75])
+    grad = jax.grad(loglik)(theta)
+    f = jax.jit(loglik)
+    eps = 1e-6
+    fd = [(f(theta.at[i].add(eps)) - f(theta.at[i].add(-eps))) / (2 * eps) for i in range(2)]
+    # central differences of a function computed to ~1e-12: error ~ eps^2 f''' + 1e-12 / eps
+    assert np.all(np.abs(np.asarray(fd)) > 1e-3)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
