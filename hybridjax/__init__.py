@@ -22,6 +22,15 @@ from ._analysis.search import Witness as Witness
 from ._analysis.search import box_samples as box_samples
 from ._analysis.search import constraint_violation as constraint_violation
 from ._analysis.search import find_point as find_point
+from ._analysis.sensitivity import DGSMResult as DGSMResult
+from ._analysis.sensitivity import MorrisResult as MorrisResult
+from ._analysis.sensitivity import SensitivityOptions as SensitivityOptions
+from ._analysis.sensitivity import SobolResult as SobolResult
+from ._analysis.sensitivity import dgsm as dgsm
+from ._analysis.sensitivity import execution_model as execution_model
+from ._analysis.sensitivity import morris_effects as morris_effects
+from ._analysis.sensitivity import sample as sample
+from ._analysis.sensitivity import sobol_indices as sobol_indices
 from ._core.status import STATUS_NAMES as STATUS_NAMES
 from ._core.status import Status as Status
 from ._definition.system import HybridSystem as HybridSystem

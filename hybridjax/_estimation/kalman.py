@@ -211,7 +211,8 @@ class SaltedKalmanFilter(eqx.Module):
             ni = self.system.modes[i].dim
 
             def f(x):
-                z = jnp.concatenate([x[:ni], jnp.eye(n, dtype=x.dtype)[:ni].reshape(-1), jnp.reshape(t, (1,))])
+                phi = jnp.eye(n, dtype=x.dtype)[:ni].reshape(-1)
+                z = jnp.concatenate([x[:ni], phi, jnp.reshape(t, (1,))])
                 return _pad_vector(z, size)
 
             return f
@@ -268,10 +269,12 @@ class SaltedKalmanFilter(eqx.Module):
         dtype = jnp.result_type(x0.dtype, jnp.float32)
         ts, ys = jnp.asarray(ts, dtype), jnp.asarray(ys, dtype)
         if ts.ndim != 1 or ys.ndim != 2 or ys.shape[0] != ts.shape[0]:
-            raise ValueError(f"SaltedKalmanFilter: ts must be (K,) and ys (K, m); got {ts.shape} and {ys.shape}.")
+            raise ValueError(f"SaltedKalmanFilter: ts must be (K,) and ys (K, m); got {ts.shape} "
+                             f"and {ys.shape}.")
         m = ys.shape[1]
         mode = as_mode_index(system, mode0)
-        if isinstance(mode0, (str, int, np.integer)) and x0.shape == (system.modes[system.mode_index(mode0)].dim,):
+        static_mode = isinstance(mode0, (str, int, np.integer))
+        if static_mode and x0.shape == (system.modes[system.mode_index(mode0)].dim,):
             x0 = _pad_vector(x0, n)
         x0 = x0.astype(dtype)
         P0, Q, R = (jnp.asarray(a, dtype) for a in (P0, Q, R))
