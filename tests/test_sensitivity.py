@@ -28,9 +28,7 @@ MODEL = hj.execution_model(hj.examples.bouncing_ball(), _inputs, _outputs, t1=T)
 def _closed_form(h, g):
     """t1 = sqrt(2 h / g); impact k at t1 (1 + 2 e (1 - e^(k-1)) / (1 - e)); count those <= T."""
     t1 = np.sqrt(2 * h / g)
-    k = np.arange(1, 40)
-    c = 1 + 2 * E * (1 - E ** (k - 1)) / (1 - E)
-    return t1, np.sum(t1[..., None] * c <= T, axis=-1).astype(float)
+    return t1, sum((t1 * (1 + 2 * E * (1 - E ** (k - 1)) / (1 - E)) <= T).astype(float) for k in range(1, 40))
 
 
 def _t1_indices():

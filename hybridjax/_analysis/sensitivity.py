@@ -132,18 +132,21 @@ _COMPILED: dict = {}
 
 def evaluate(
     model: Callable[[Array], Array], thetas: np.ndarray, chunk_size: int
-) -> tuple[np.ndarray, float]:
+) -> tuple[np.ndarray, float, float]:
     """`model` on the rows of `thetas` in chunks of `chunk_size` (one compiled program, the
-    last chunk padded by repeating its last row); (outputs (N, k), run seconds). Only the
-    outputs come back to the host."""
+    last chunk padded by repeating its last row); (outputs (N, k), run seconds, compile
+    seconds: 0 where the program of an earlier call was reused). Only the outputs come back
+    to the host."""
     thetas = np.asarray(thetas)
     total = thetas.shape[0]
     chunk = min(chunk_size, total)
     dtype = jnp.result_type(float)
     key = (model, chunk, thetas.shape[1], jnp.dtype(dtype))
     compiled = _COMPILED.pop(key, None)
+    compile_s = time.perf_counter()
     if compiled is None:
         compiled = jax.jit(model).lower(jax.ShapeDtypeStruct((chunk, thetas.shape[1]), dtype)).compile()
+    compile_s = time.perf_counter() - compile_s
     _COMPILED[key] = compiled
     while len(_COMPILED) > 8:
         _COMPILED.pop(next(iter(_COMPILED)))
@@ -153,7 +156,7 @@ def evaluate(
         idx = np.minimum(np.arange(lo, lo + chunk), total - 1)
         out = np.asarray(compiled(jnp.asarray(thetas[idx], dtype)))
         outs.append(out.reshape(chunk, -1)[: min(chunk, total - lo)])
-    return np.concatenate(outs), time.perf_counter() - start
+    return np.concatenate(outs), time.perf_counter() - start, compile_s
 
 
 class SobolResult(NamedTuple):
@@ -162,7 +165,7 @@ class SobolResult(NamedTuple):
     - `first_order`, `total`: (k, d); `first_order_interval`, `total_interval`: (k, d, 2)
       bootstrap percentile intervals at `confidence`.
     - `variance`: (k,) the output's variance; `n`: base samples; `evaluations`: n (d + 2).
-    - `run_s`, `executions_per_s`: the model's run time (compile excluded).
+    - `run_s`, `executions_per_s`: the model's run time (compile excluded); `compile_s`.
     """
 
     names: tuple[str, ...]
@@ -176,6 +179,7 @@ class SobolResult(NamedTuple):
     evaluations: int
     run_s: float
     executions_per_s: float
+    compile_s: float
 
     def table(self, outputs: tuple[str, ...] | None = None) -> str:
         """A Markdown table: output, parameter, S_i and S_Ti with their intervals."""
@@ -201,18 +205,39 @@ def _names(names, d: int) -> tuple[str, ...]:
     return names
 
 
+def _row_terms(fA: np.ndarray, fB: np.ndarray, fAB: np.ndarray) -> np.ndarray:
+    """Per row (n, k (4 + 3 d)): f(A), f(B), their squares, f(B) D_i, D_i and D_i^2, with
+    D_i = f(A_B^i) - f(A); the outputs shifted by their overall mean first (the indices do not
+    change; the variance is then a difference of small numbers). The estimators are functions
+    of these terms' means, so a bootstrap resample costs one gather and one sum."""
+    shift = np.concatenate([fA, fB]).mean(axis=0)
+    fA, fB, fAB = fA - shift, fB - shift, fAB - shift
+    n = fA.shape[0]
+    D = fAB - fA[None]  # (d, n, k)
+    per_i = [np.moveaxis(x, 0, 1).reshape(n, -1) for x in (fB[None] * D, D, D**2)]
+    return np.concatenate([fA, fB, fA**2, fB**2, *per_i], axis=1)
+
+
+def _indices_from_means(means: np.ndarray, d: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    mA, mB, mA2, mB2 = (means[..., j * k : (j + 1) * k] for j in range(4))
+    rest = means[..., 4 * k :].reshape(means.shape[:-1] + (3, d, k))
+    mBD, mD, mD2 = rest[..., 0, :, :], rest[..., 1, :, :], rest[..., 2, :, :]
+    f0 = (mA + mB) / 2
+    V = (mA2 + mB2) / 2 - f0**2
+    Vs = np.where(V > 0, V, np.nan)[..., None, :]
+    S = (mBD - f0[..., None, :] * mD) / Vs
+    ST = 0.5 * mD2 / Vs
+    return np.swapaxes(S, -1, -2), np.swapaxes(ST, -1, -2)
+
+
 def saltelli_estimates(fA: np.ndarray, fB: np.ndarray, fAB: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(S, S_T), each (k, d), from f(A), f(B) (n, k) and f(A_B^i) (d, n, k), A_B^i being A with
     column i from B: V = Var[f(A), f(B)], S_i = mean((f(B) - f0) (f(A_B^i) - f(A))) / V and
     S_Ti = mean((f(A) - f(A_B^i))^2) / (2 V) (Saltelli et al. 2010; Jansen). f(B) is centred
     on f0 = mean[f(A), f(B)], which leaves the estimator's expectation unchanged
     (E[f(A_B^i) - f(A)] = 0) and lowers its variance where the output's mean is large."""
-    both = np.concatenate([fA, fB])
-    V = np.var(both, axis=0)  # (k,)
-    Vs = np.where(V > 0, V, np.nan)
-    S = np.mean((fB - both.mean(axis=0))[None] * (fAB - fA[None]), axis=1) / Vs  # (d, k)
-    ST = 0.5 * np.mean((fA[None] - fAB) ** 2, axis=1) / Vs
-    return S.T, ST.T
+    d, _, k = fAB.shape
+    return _indices_from_means(_row_terms(fA, fB, fAB).mean(axis=0), d, k)
 
 
 def sobol_indices(
@@ -243,15 +268,14 @@ def sobol_indices(
     m = A.shape[0]
     AB = np.repeat(A[None], d, axis=0)
     AB[np.arange(d), :, np.arange(d)] = B.T
-    out, run_s = evaluate(model, np.concatenate([A, B, AB.reshape(d * m, d)]), options.chunk_size)
+    out, run_s, compile_s = evaluate(model, np.concatenate([A, B, AB.reshape(d * m, d)]), options.chunk_size)
     fA, fB, fAB = out[:m], out[m : 2 * m], out[2 * m :].reshape(d, m, -1)
-    S, ST = saltelli_estimates(fA, fB, fAB)
+    k = fA.shape[1]
+    terms = _row_terms(fA, fB, fAB)
+    S, ST = _indices_from_means(terms.mean(axis=0), d, k)
     rng = np.random.default_rng(options.seed)
-    boot_S, boot_T = [], []
-    for _ in range(options.n_bootstrap):
-        idx = rng.integers(0, m, m)
-        s, t = saltelli_estimates(fA[idx], fB[idx], fAB[:, idx])
-        boot_S.append(s), boot_T.append(t)
+    boot = np.array([terms[rng.integers(0, m, m)].mean(axis=0) for _ in range(options.n_bootstrap)])
+    boot_S, boot_T = _indices_from_means(boot, d, k) if options.n_bootstrap else ([], [])
     alpha = 100 * (1 - options.confidence) / 2
     if options.n_bootstrap:
         S_int = np.moveaxis(np.nanpercentile(np.array(boot_S), [alpha, 100 - alpha], axis=0), 0, -1)
@@ -261,7 +285,7 @@ def sobol_indices(
     evals = out.shape[0]
     V = np.var(np.concatenate([fA, fB]), axis=0)
     return SobolResult(_names(names, d), S, ST, S_int, T_int, V, options.confidence, m, evals, run_s,
-                       evals / max(run_s, 1e-12))
+                       evals / max(run_s, 1e-12), compile_s)
 
 
 class MorrisResult(NamedTuple):
@@ -328,7 +352,7 @@ def morris_effects(
     d = b.shape[0]
     u, order, sign = morris_trajectories(d, r, levels, options.seed)
     theta = b[:, 0] + u * (b[:, 1] - b[:, 0])
-    out, run_s = evaluate(model, theta.reshape(r * (d + 1), d), options.chunk_size)
+    out, run_s, _ = evaluate(model, theta.reshape(r * (d + 1), d), options.chunk_size)
     f = out.reshape(r, d + 1, -1)
     delta = levels / (2 * (levels - 1))
     ee = np.empty((r, f.shape[2], d))
@@ -401,7 +425,7 @@ def dgsm(
     d = b.shape[0]
     theta = sample(b, n, options.sampler, options.seed)
 
-    res, run_s = evaluate(_with_gradients(model), theta, options.chunk_size)
+    res, run_s, _ = evaluate(_with_gradients(model), theta, options.chunk_size)
     m = res.shape[0]
     k = res.shape[1] // (d + 1)
     f, grads = res[:, :k], res[:, k:].reshape(m, k, d)
