@@ -158,3 +158,32 @@ def test_log_likelihood_gradient_in_noise_and_model_parameters_matches_finite_di
     # central differences of a function computed to ~1e-12: error ~ eps^2 f''' + 1e-12 / eps
     assert np.all(np.abs(np.asarray(fd)) > 1e-3)
     np.testing.assert_allclose(grad, fd, rtol=1e-5)
+
+
+def test_a_transition_to_a_mode_of_smaller_dimension_with_its_own_measurement():
+    # Mode "fall" (p, v): flow (v, -1); at p = 0 the state becomes q = v in mode "decay" (dim 1),
+    # flow -q. Xi (1 x 2) = D_x R + (F_J - D_x R F_I) D_x g / (D_x g F_I) with D_x R = (0, 1),
+    # F_J = -v, D_x R F_I = -1, D_x g = (1, 0), D_x g F_I = v: Xi = ((1 - v) / v, 1).
+    fall = hj.Mode("fall", lambda t, x, args: jnp.stack([x[1], -jnp.ones_like(x[1])]), dim=2)
+    decay = hj.Mode("decay", lambda t, x, args: -x, dim=1)
+    land = hj.Transition("fall", "decay", guard=lambda t, x, args: x[0], reset=lambda t, x, args: x[1:])
+    system = hj.HybridSystem([fall, decay], [land])
+    kf = hj.SaltedKalmanFilter(system, [lambda t, x, args: x[:1], lambda t, x, args: 2.0 * x],
+                               stepsize_controller=TIGHT)
+    p0, v0, t1 = 0.5, 0.5, 2.0
+    t_hit = v0 + np.sqrt(v0**2 + 2 * p0)  # p0 + v0 t - t^2 / 2 = 0
+    v_minus = v0 - t_hit
+    P0, Q, R = np.array([[0.02, 0.004], [0.004, 0.01]]), np.diag([3e-4, 7e-4]), np.array([[0.05]])
+    y = 0.1
+    res = kf(np.array([p0, v0]), P0, np.array([t1]), np.array([[y]]), Q, R, mode0="fall", t0=0.0)
+    J = np.exp(-(t1 - t_hit)) * np.array([[(1 - v_minus) / v_minus, 1.0]]) @ _flow_stm(t_hit)
+    P_pred = (J @ P0 @ J.T)[0, 0] + Q[0, 0]  # decay uses Q's leading block
+    q_pred = v_minus * np.exp(-(t1 - t_hit))
+    assert int(res.modes[0]) == 1
+    np.testing.assert_allclose(res.predicted_means[0], [q_pred, 0.0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(res.predicted_covariances[0], [[P_pred, 0.0], [0.0, 0.0]], rtol=1e-8, atol=1e-14)
+    # the update with decay's measurement h = 2 q, H = 2
+    S = 4 * P_pred + R[0, 0]
+    K = 2 * P_pred / S
+    np.testing.assert_allclose(res.means[0, 0], q_pred + K * (y - 2 * q_pred), rtol=1e-9)
+    np.testing.assert_allclose(res.covariances[0, 0, 0], (1 - 2 * K) * P_pred, rtol=1e-8)
