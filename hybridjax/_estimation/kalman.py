@@ -14,7 +14,8 @@ Xi = D_x R + (F_J - D_x R F_I - D_t R) D_x g / (D_t g + D_x g F_I) (`update="sal
 or the reset's Jacobian D_x R alone (`update="reset"`, the update the paper compares
 against). A transition fired at the start of an epoch (at once after a measurement or after
 another transition at the same instant) has no timing term: its time does not depend on
-the state (A. M. Johnson, "Hybrid Dynamical Systems", the saltation matrix, eq. (11)).
+the state (N. J. Kong, J. J. Payne, J. Zhu, A. M. Johnson, "Saltation matrices: the essential
+tool for linearizing hybrid dynamical systems", Proc. IEEE, 2024).
 The measurement update is the EKF's with the measurement function of the predicted mode.
 """
 
@@ -145,9 +146,13 @@ class SaltedKalmanFilter(eqx.Module):
 
         ```python
         ball = hj.examples.bouncing_ball()
-        kf = hj.SaltedKalmanFilter(ball, lambda t, x, args: x[:1])
-        res = kf(x0, P0, ts, ys, Q, R, t0=0.0, args={"g": 9.81, "e": 0.8})
-        res.means[:, 0], res.covariances[:, 0, 0]   # height and its variance
+        args = {"g": 9.81, "e": 0.8}
+        ts = 0.03 + 0.04 * jnp.arange(38)
+        ys = hj.simulate(ball, jnp.array([1.0, 0.0]), "flight", 0.0, ts[-1], args, saveat=ts).ys[:, :1]
+        kf = hj.SaltedKalmanFilter(ball, lambda t, x, args: x[:1])   # the height is measured
+        res = kf(jnp.array([1.0, 0.0]), 1e-4 * jnp.eye(2), ts, ys + 0.01, jnp.zeros((2, 2)),
+                 1e-4 * jnp.eye(1), t0=0.0, args=args)
+        res.means[:, 0], res.covariances[:, 0, 0], res.num_events   # through two impacts
         ```
     """
 
@@ -262,7 +267,8 @@ class SaltedKalmanFilter(eqx.Module):
         t0: Float[ArrayLike, ""] | None = None,
         args: Any = None,
     ) -> KalmanResult:
-        """Filter the measurements `ys` taken at times `ts` (increasing, >= t0) from the prior
+        """Filter the measurements `ys` taken at times `ts` (non-decreasing, >= t0: a prediction
+        to a time before the previous one has the status `T1_BEFORE_T0`) from the prior
         N(x0, P0) in `mode0` at `t0` (default `ts[0]`: the first measurement is not predicted)."""
         system, n = self.system, self.system.max_dim
         x0 = jnp.asarray(x0)
