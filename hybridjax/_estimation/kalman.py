@@ -289,31 +289,40 @@ class SaltedKalmanFilter(eqx.Module):
                 raise ValueError(f"SaltedKalmanFilter: {name} has shape {a.shape}, expected {k} "
                                  f"(state padded to {n}, {m} measured components).")
         t0 = ts[0] if t0 is None else jnp.asarray(t0, dtype)
-        eye = jnp.eye(n, dtype=dtype)
+        return _run(self, x0, P0, ts, ys, Q, R, mode, t0, args)
 
-        def step(carry, inputs):
-            t, x, P, mode = carry
-            tk, yk = inputs
-            sol = simulate(self.variational, self._start(mode, t, x), mode, t, tk, args,
-                           solver=self.solver, stepsize_controller=self.stepsize_controller,
-                           max_epochs=self.max_events, max_steps=self.max_steps, zeno=False)
-            mode = sol.final_mode
-            x_pred, J = self._split(mode, sol.final_state)
-            mask = self._mask(mode, dtype)
-            P_pred = J @ P @ J.T + Q * mask[:, None] * mask[None, :]
-            h, H = self._measure(mode, tk, x_pred, args)
-            S = H @ P_pred @ H.T + R
-            K = jnp.linalg.solve(S, H @ P_pred).T  # P H^T S^-1, S and P symmetric
-            nu = yk - h
-            x_new = x_pred + K @ nu
-            A = eye - K @ H
-            P_new = A @ P_pred @ A.T + K @ R @ K.T
-            P_new = 0.5 * (P_new + P_new.T)
-            _, logdet = jnp.linalg.slogdet(S)
-            ll = -0.5 * (nu @ jnp.linalg.solve(S, nu) + logdet + m * jnp.log(2 * jnp.pi))
-            out = (x_new, P_new, mode, x_pred, P_pred, nu, S, ll, sol.num_events, sol.status_code)
-            return (tk, x_new, P_new, mode), out
 
-        _, out = lax.scan(step, (t0, x0, P0, mode), (ts, ys))
-        xs, Ps, modes, xp, Pp, nus, Ss, lls, nev, status = out
-        return KalmanResult(xs, Ps, modes, xp, Pp, nus, Ss, jnp.sum(lls), nev, status)
+@eqx.filter_jit
+def _run(kf: SaltedKalmanFilter, x0, P0, ts, ys, Q, R, mode, t0, args) -> KalmanResult:
+    """The filter's scan over the measurements, compiled once per filter and shapes (the
+    user's functions by identity; Python numbers in `args` are constants of the program), so
+    that calls outside `jax.jit` do not trace and compile again."""
+    n, m, dtype = kf.system.max_dim, ys.shape[1], ys.dtype
+    eye = jnp.eye(n, dtype=dtype)
+
+    def step(carry, inputs):
+        t, x, P, mode = carry
+        tk, yk = inputs
+        sol = simulate(kf.variational, kf._start(mode, t, x), mode, t, tk, args,
+                       solver=kf.solver, stepsize_controller=kf.stepsize_controller,
+                       max_epochs=kf.max_events, max_steps=kf.max_steps, zeno=False)
+        mode = sol.final_mode
+        x_pred, J = kf._split(mode, sol.final_state)
+        mask = kf._mask(mode, dtype)
+        P_pred = J @ P @ J.T + Q * mask[:, None] * mask[None, :]
+        h, H = kf._measure(mode, tk, x_pred, args)
+        S = H @ P_pred @ H.T + R
+        K = jnp.linalg.solve(S, H @ P_pred).T  # P H^T S^-1, S and P symmetric
+        nu = yk - h
+        x_new = x_pred + K @ nu
+        A = eye - K @ H
+        P_new = A @ P_pred @ A.T + K @ R @ K.T
+        P_new = 0.5 * (P_new + P_new.T)
+        _, logdet = jnp.linalg.slogdet(S)
+        ll = -0.5 * (nu @ jnp.linalg.solve(S, nu) + logdet + m * jnp.log(2 * jnp.pi))
+        out = (x_new, P_new, mode, x_pred, P_pred, nu, S, ll, sol.num_events, sol.status_code)
+        return (tk, x_new, P_new, mode), out
+
+    _, out = lax.scan(step, (t0, x0, P0, mode), (ts, ys))
+    xs, Ps, modes, xp, Pp, nus, Ss, lls, nev, status = out
+    return KalmanResult(xs, Ps, modes, xp, Pp, nus, Ss, jnp.sum(lls), nev, status)
