@@ -401,6 +401,8 @@ def _with_gradients(model):
         return jnp.concatenate([out2, jnp.stack(grads, axis=1).reshape(out.shape[0], -1)], axis=1)
 
     _GRADIENT_MODELS[model] = both
+    while len(_GRADIENT_MODELS) > 8:
+        _GRADIENT_MODELS.pop(next(iter(_GRADIENT_MODELS)))
     return both
 
 
