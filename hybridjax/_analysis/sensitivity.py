@@ -251,7 +251,8 @@ def sobol_indices(
     r"""First-order and total Sobol' indices of `model`'s outputs, Saltelli's scheme.
 
     S_i = Var(E[Y | theta_i]) / Var(Y), S_Ti = E[Var(Y | theta_{~i})] / Var(Y). Two independent
-    samples A, B of `n` rows (one 2d-dimensional design split in two) and the d matrices
+    samples A, B of `n` rows (rounded up to a power of 2 with the Sobol' sampler; one
+    2d-dimensional design split in two) and the d matrices
     A_B^i (A with column i from B): n (d + 2) evaluations, in chunks. Estimators: S_i =
     mean((f(B) - f0) (f(A_B^i) - f(A))) / V, S_Ti = mean((f(A) - f(A_B^i))^2) / (2 V) (Saltelli et
     al. 2010). Intervals: percentiles of the estimates over `n_bootstrap` resamples of the n
