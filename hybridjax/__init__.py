@@ -22,6 +22,15 @@ from ._analysis.search import Witness as Witness
 from ._analysis.search import box_samples as box_samples
 from ._analysis.search import constraint_violation as constraint_violation
 from ._analysis.search import find_point as find_point
+from ._analysis.sensitivity import DGSMResult as DGSMResult
+from ._analysis.sensitivity import MorrisResult as MorrisResult
+from ._analysis.sensitivity import SensitivityOptions as SensitivityOptions
+from ._analysis.sensitivity import SobolResult as SobolResult
+from ._analysis.sensitivity import dgsm as dgsm
+from ._analysis.sensitivity import execution_model as execution_model
+from ._analysis.sensitivity import morris_effects as morris_effects
+from ._analysis.sensitivity import sample as sample
+from ._analysis.sensitivity import sobol_indices as sobol_indices
 from ._core.status import STATUS_NAMES as STATUS_NAMES
 from ._core.status import Status as Status
 from ._definition.system import HybridSystem as HybridSystem
@@ -29,6 +38,8 @@ from ._definition.system import Mode as Mode
 from ._definition.system import Transition as Transition
 from ._definition.system import ZenoCompletion as ZenoCompletion
 from ._definition.validation import DefinitionError as DefinitionError
+from ._estimation.kalman import KalmanResult as KalmanResult
+from ._estimation.kalman import SaltedKalmanFilter as SaltedKalmanFilter
 from ._optimise.ilqr import HybridILQRResult as HybridILQRResult
 from ._optimise.ilqr import HybridLQRProblem as HybridLQRProblem
 from ._optimise.ilqr import hybrid_ilqr as hybrid_ilqr

@@ -23,6 +23,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("solution", ("_solution",)),
     ("solve", ("_solve",)),
     ("analysis", ("_analysis",)),
+    ("estimation", ("_estimation",)),
     ("trajectory optimisation", ("_optimise",)),
     ("scenes", ("_scenes",)),
     ("public modules", ("examples", "plot", "_demo")),
