@@ -222,7 +222,8 @@ def per_core(res: dict) -> list[str]:
     out = _page("per_core", "Per core", res, "per_core.py",
                 f"Problem A (N = {res['n']:,}, Tsit5, rtol = atol = 1e-9) computed four ways, each on one core and "
                 "split over every core (one JAX CPU device per core: hybridjax through its `devices` option, the "
-                "others by hand, an equal part of the executions on each device), in one process, best of "
+                "others by hand, an equal part of the executions on each device), and a fifth, "
+                "`jax.vmap(hj.simulate)` (the way `simulate_batch` runs on a GPU), on one core; in one process, best of "
                 f"{res['rounds']} alternating runs. Every way is compiled with the problem's parameters as "
                 "constants; errors are against the closed form for every execution.")
     body = []
@@ -233,6 +234,9 @@ def per_core(res: dict) -> list[str]:
                      f"{r['vs_closed_form_one_core']:.3f}", f"{same:.2f}", f"{r['error']:.0e}", r["wrong"]])
     out += _table(["way", "executions/s", "x the lock-step loop, one core", "x the closed form, one core",
                    "x the same way on one core", "max error", "wrong event counts"], body)
+    if "hybridjax vmap(simulate), one core" in rows:
+        v = rows["hybridjax vmap(simulate), one core"]
+        out.append(f"- On one core, `jax.vmap(simulate)` runs at {v['vs_lockstep_one_core']:.2f}x the lock-step loop.")
     for cores in ("one core", "every core"):
         h, b = rows[f"hybridjax, {cores}"], rows[f"bare hand-written loop, {cores}"]
         lk = rows[f"diffrax lock-step loop, {cores}"]
