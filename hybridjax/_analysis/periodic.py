@@ -33,7 +33,6 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Complex, Float
@@ -116,7 +115,7 @@ def _quantities(problem: _ReturnProblem, x):
     """At a section point x: P(x), DP(x), the return time (period), the base point (halfway
     through the first epoch, not on an event, so that the time-T flow is smooth there), its time,
     and the monodromy matrix, the Jacobian of the time-T flow at the base point. Also whether the
-    transition fired again (1.0 or 0.0)."""
+    transition fired again (1.0 or 0.0), and the execution along the orbit from the base point."""
 
     def P_aux(x):
         P, *aux = problem.first_return(x)
@@ -125,19 +124,24 @@ def _quantities(problem: _ReturnProblem, x):
     DP, (P, period, hit, first_event) = jax.jacfwd(P_aux, has_aux=True)(x)
     base_time = 0.5 * first_event
     base = problem.run(x, base_time).final_state
-    M = jax.jacfwd(lambda y: problem.run(y, period).final_state)(base)
+    def flow_T(y):
+        sol = problem.run(y, period)
+        return sol.final_state, sol
+
+    M, orbit_sol = jax.jacfwd(flow_T, has_aux=True)(base)
     q = dict(P=P, DP=DP, period=period, base_time=base_time, base=base, M=M)
-    return q, hit.astype(x.dtype)
+    return q, hit.astype(x.dtype), orbit_sol
 
 
 @eqx.filter_custom_jvp
 def _orbit(diff_args, x_guess, problem: _ReturnProblem):
-    """(x*, the quantities at x*, whether the transition fired again) for the parameters'
-    inexact arrays `diff_args`; derivatives by `_orbit_jvp`."""
+    """(x*, the quantities at x*, whether the transition fired again, the arrays of the execution
+    along the orbit) for the parameters' inexact arrays `diff_args`; derivatives by `_orbit_jvp`
+    (none for the execution)."""
     pr = problem.at(diff_args)
     x_star = _fixed_point(pr, x_guess)
-    q, hit = _quantities(pr, x_star)
-    return x_star, q, hit
+    q, hit, orbit_sol = _quantities(pr, x_star)
+    return x_star, q, hit, eqx.filter(orbit_sol, eqx.is_array)
 
 
 @_orbit.def_jvp
@@ -147,7 +151,7 @@ def _orbit_jvp(primals, tangents):
     (one `jax.jacfwd` over the stacked state and raveled parameters)."""
     diff_args, x_guess, problem = primals
     d_args = tangents[0]
-    x_star, q, hit = _orbit(diff_args, x_guess, problem)
+    x_star, q, hit, sol_arrays = _orbit(diff_args, x_guess, problem)
     flat, unravel = ravel_pytree(diff_args)
     if d_args is None:
         d_flat = jnp.zeros_like(flat)
@@ -165,23 +169,29 @@ def _orbit_jvp(primals, tangents):
     I_n = jnp.eye(n, dtype=x_star.dtype)
     dx = jnp.linalg.solve(I_n - q["DP"], J["P"][:, n:] @ d_flat)
     dq = {key: J[key][..., :n] @ dx + J[key][..., n:] @ d_flat for key in q}
-    return (x_star, q, hit), (dx, dq, jnp.zeros_like(hit))
+    no_tangent = jax.tree_util.tree_map(lambda _: None, sol_arrays)
+    return (x_star, q, hit, sol_arrays), (dx, dq, jnp.zeros_like(hit), no_tangent)
 
 
-_orbit_compiled = eqx.filter_jit(_orbit)
+@eqx.filter_jit
+def _orbit_compiled(diff_args, x_guess, problem: _ReturnProblem):
+    """`_orbit`, compiled once per configuration, with the execution along the orbit made whole
+    again (its non-array parts from an abstract evaluation, at tracing time only)."""
+    x_star, q, hit, sol_arrays = _orbit(diff_args, x_guess, problem)
+    shapes = eqx.filter_eval_shape(problem.at(diff_args).run, q["base"], q["period"])
+    static = eqx.partition(shapes, lambda leaf: isinstance(leaf, jax.ShapeDtypeStruct))[1]
+    return x_star, q, hit, eqx.combine(sol_arrays, static)
 
 
-def _saltation_monodromy(problem: _ReturnProblem, base, period):
+def _saltation_monodromy(orbit_sol):
     """The monodromy matrix by saltation composition along the orbit from the base point
     (`variational_jacobian`, an independent check of the AD one), or None where the values are
     traced (it needs concrete event times)."""
-    try:
-        base, period = np.asarray(sg(base)), float(sg(period))
-    except jax.errors.ConcretizationTypeError:
+    arrays, static = eqx.partition(orbit_sol, eqx.is_array)
+    arrays = sg(arrays)
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(arrays)):
         return None
-    except jax.errors.TracerArrayConversionError:
-        return None
-    return variational_jacobian(problem.run(jnp.asarray(base), period)).final_state
+    return variational_jacobian(eqx.combine(arrays, static)).final_state
 
 
 def periodic_orbit(
@@ -238,12 +248,12 @@ def periodic_orbit(
     problem = _ReturnProblem(system, rest, ctrl, mode=mode, transition=k, t_max=t_max, max_epochs=max_epochs,
                              rtol=float(rtol))
 
-    x_star, q, hit = _orbit_compiled(diff_args, x_guess, problem)
+    x_star, q, hit, orbit_sol = _orbit_compiled(diff_args, x_guess, problem)
     x_star = eqx.error_if(
         x_star, hit == 0,
         f"periodic_orbit: transition {system.transitions[k].label} did not fire again within t_max={t_max} "
         "from the converged state.")
-    M_salt = _saltation_monodromy(problem.at(sg(diff_args)), q["base"], q["period"])
+    M_salt = _saltation_monodromy(orbit_sol)
     return PeriodicOrbit(
         state=x_star,
         mode=mode,
