@@ -133,6 +133,10 @@ def _quantities(problem: _ReturnProblem, x):
     return q, hit.astype(x.dtype), orbit_sol
 
 
+# The non-array parts of the execution along the orbit, from `_orbit`'s trace to `_orbit_compiled`.
+_SOLUTION_PARTS: list = []
+
+
 @eqx.filter_custom_jvp
 def _orbit(diff_args, x_guess, problem: _ReturnProblem):
     """(x*, the quantities at x*, whether the transition fired again, the arrays of the execution
@@ -141,7 +145,9 @@ def _orbit(diff_args, x_guess, problem: _ReturnProblem):
     pr = problem.at(diff_args)
     x_star = _fixed_point(pr, x_guess)
     q, hit, orbit_sol = _quantities(pr, x_star)
-    return x_star, q, hit, eqx.filter(orbit_sol, eqx.is_array)
+    arrays, static = eqx.partition(orbit_sol, eqx.is_array)
+    _SOLUTION_PARTS.append(static)
+    return x_star, q, hit, arrays
 
 
 @_orbit.def_jvp
@@ -176,11 +182,11 @@ def _orbit_jvp(primals, tangents):
 @eqx.filter_jit
 def _orbit_compiled(diff_args, x_guess, problem: _ReturnProblem):
     """`_orbit`, compiled once per configuration, with the execution along the orbit made whole
-    again (its non-array parts from an abstract evaluation, at tracing time only)."""
+    again: its non-array parts, which a custom JVP cannot return, are left by `_orbit` (traced
+    at once by the call below) in `_SOLUTION_PARTS`."""
+    _SOLUTION_PARTS.clear()
     x_star, q, hit, sol_arrays = _orbit(diff_args, x_guess, problem)
-    shapes = eqx.filter_eval_shape(problem.at(diff_args).run, q["base"], q["period"])
-    static = eqx.partition(shapes, lambda leaf: isinstance(leaf, jax.ShapeDtypeStruct))[1]
-    return x_star, q, hit, eqx.combine(sol_arrays, static)
+    return x_star, q, hit, eqx.combine(sol_arrays, _SOLUTION_PARTS.pop())
 
 
 def _saltation_monodromy(orbit_sol):

@@ -217,7 +217,7 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
     the flow is written as its Taylor polynomial in the time w past u*, about the dense
     output's state x* at the fixed elapsed time u*:
 
-        X(w; p) = x* + F w + (D_t F + D_x F F) w^2 / 2,   F = F(t_s + u*, x*),
+        X(w; p) = x* + F w + [D_t F + D_x F F] w^2 / 2,   F = F(t_s + u*, x*),
 
     p = (t_s, x*, args) (x* carries the dependence on the epoch's start state and parameters
     through the dense output's coefficients). The event is the root w(p) of
@@ -229,7 +229,9 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
     `_located` gives w(p) and X(w(p); p) a JVP rule that calls `_located` itself, so its own
     derivatives follow the same rule: every derivative of the event time is the implicit
     function theorem's, and those up to the second are exact for the flow through x*(p) (a
-    third derivative would need the third time derivative of the flow). X uses the true vector
+    third derivative would need the third time derivative of the flow, and the derivative of
+    the second, held here so that first derivatives never differentiate the flow twice: a
+    contact scene's flow is a KKT solve). X uses the true vector
     field and its time derivative, not the dense output's slope and curvature, which are one
     and two orders less accurate than the tolerance. Holding u* fixed, rather than t*, makes a
     shift of the epoch's start time reach the event time directly: for an autonomous flow and
@@ -251,7 +253,7 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
     diff_args, rest = eqx.partition(args, eqx.is_inexact_array)
 
     def local(w, p):
-        """(G(w; p), X(w; p)) for p = (t_s, x*, the args' inexact arrays)."""
+        """(G, X, D_w G, D_w X) at (w; p), p = (t_s, x*, the args' inexact arrays)."""
         ts, x0, da = p
         a = eqx.combine(da, rest)
         tt = ts + u_star
@@ -259,10 +261,15 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
         def flow(t_, x_):
             return kern.flow(mode, t_, x_, a)
 
+        def guard(t_, x_):
+            return kern.guards(mode, t_, x_, a)[k]
+
         F = flow(tt, x0)
-        _, F_dot = jax.jvp(flow, (tt, x0), (jnp.ones_like(tt), F))
+        F_dot = sg(jax.jvp(flow, (tt, x0), (jnp.ones_like(tt), F))[1])
         X = x0 + w * F + (0.5 * w * w) * F_dot
-        return kern.guards(mode, tt + w, X, a)[k], X
+        X_w = F + w * F_dot
+        G, G_w = jax.jvp(guard, (tt + w, X), (jnp.ones_like(tt), X_w))
+        return G, X, G_w, X_w
 
     w0 = jnp.zeros_like(t_s)
     p = (t_s, x_star, diff_args)
@@ -302,8 +309,9 @@ def _located_jvp(local, primals, tangents):
     w0, p, consts = primals
     _, dp, dconsts = tangents
     w, x = _located(local, w0, p, consts)
-    _, (G_w, X_w) = jax.jvp(lambda w_: local(consts, w_, p), (w,), (jnp.ones_like(w),))
-    _, (G_p, X_p) = jax.jvp(lambda p_, c_: local(c_, w, p_), (p, consts), (dp, dconsts))
+    # One JVP in p: the partial derivatives in w are outputs of `local` (the tangents of those
+    # outputs are not used, and XLA drops them).
+    (_, _, G_w, X_w), (G_p, X_p, _, _) = jax.jvp(lambda p_, c_: local(c_, w, p_), (p, consts), (dp, dconsts))
     dw = (-G_p / jnp.where(G_w != 0, G_w, 1.0)).astype(w.dtype)  # tangency: 1, not 0 (`grazing`)
     return (w, x), (dw, (X_p + X_w * dw).astype(x.dtype))
 
