@@ -15,6 +15,7 @@ import math
 
 import diffrax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -384,29 +385,50 @@ def _pushed_wheel():
 WHEEL = _pushed_wheel()
 
 
+@jax.jit
 def _radius_squared(k, guess):
-    orbit = hj.periodic_orbit(WHEEL, 0, guess, {"k": jnp.asarray(k)}, max_epochs=2, t_max=20.0)
-    return float(np.max(np.abs(np.linalg.eigvals(orbit.poincare_jacobian))) ** 2), orbit.state
+    """The spectral radius of the return map's Jacobian, squared, and its derivative in k, by
+    jax.grad through hj.periodic_orbit; DP's eigenvalues are 0 (along the flow) and the
+    multiplier, so the radius is |trace DP|. Also the orbit's state (the next guess)."""
+
+    def radius2(k):
+        orbit = hj.periodic_orbit(WHEEL, 0, guess, {"k": k}, max_epochs=2, t_max=20.0)
+        return jnp.trace(orbit.poincare_jacobian) ** 2, orbit.state
+
+    return jax.value_and_grad(radius2, has_aux=True)(k)
 
 
+def _radius_squared_closed(k):
+    """The multiplier (c + k) omega+ / omega- squared at the fixed point omega+ of
+    omega+ + k omega_ref = (c + k) sqrt(omega+^2 + beta): the root of the squared equation
+    (1 - a^2) w^2 + 2 k omega_ref w + k^2 omega_ref^2 - a^2 beta = 0 (a = c + k) with
+    w + k omega_ref > 0."""
+    c, beta = math.cos(2 * ALPHA), 4 * math.sin(ALPHA) * math.sin(GAMMA)
+    a = c + k
+    A, B, C = 1 - a * a, 2 * k * W_REF, k * k * W_REF**2 - a * a * beta
+    w = (-B + jnp.sqrt(B * B - 4 * A * C)) / (2 * A)
+    return (a * w / jnp.sqrt(w * w + beta)) ** 2
+
+
+@pytest.mark.slow
 def test_gait_push_off_gain_minimising_the_spectral_radius():
     """Energy from theta+ = gamma - alpha to theta- = gamma + alpha: omega-^2 = omega+^2 + beta,
     beta = 4 sin(alpha) sin(gamma); the return map omega+' = (c + k) omega- - k omega_ref has the
     multiplier (c + k) omega+ / omega- at its fixed point, c = cos(2 alpha): the radius is 0
-    (deadbeat) at k* = -c, where omega+* = c omega_ref > 0 is a gait."""
+    (deadbeat) at k* = -c, where omega+* = c omega_ref > 0 is a gait. The gradient in k is a
+    second derivative through the impacts, by jax.grad through hj.periodic_orbit."""
     c = math.cos(2 * ALPHA)
     k, guess = -0.7, jnp.array([GAMMA - ALPHA, 0.5])
+    (r, _), g = _radius_squared(jnp.asarray(k), guess)
+    np.testing.assert_allclose(r, _radius_squared_closed(k), rtol=1e-8)
+    np.testing.assert_allclose(g, jax.grad(_radius_squared_closed)(k), rtol=1e-6)
     opt = optax.sgd(0.6)   # the radius squared has curvature ~1.4 in k near k*
     state = opt.init(jnp.asarray(k))
     radii = []
     for _ in range(5):
-        # Central differences of the radius, each from hj.periodic_orbit's DP: the derivative of
-        # a Jacobian through the impacts would be a second derivative through events.
-        h = 1e-5
-        (rp, _), (rm, _) = _radius_squared(k + h, guess), _radius_squared(k - h, guess)
-        r, guess = _radius_squared(k, guess)
-        radii.append(r)
-        updates, state = opt.update(jnp.asarray((rp - rm) / (2 * h)), state)
+        (r, guess), g = _radius_squared(jnp.asarray(k), guess)
+        radii.append(float(r))
+        updates, state = opt.update(g, state)
         k = float(optax.apply_updates(jnp.asarray(k), updates))
     np.testing.assert_allclose(k, -c, atol=1e-4)
     assert radii[-1] < 1e-7 and radii[-1] < radii[0]

@@ -272,8 +272,8 @@ def shoot(
     (`jax.lax.scan`). With `batched=True`, `params0` has a leading axis of initial guesses,
     solved together (`jax.vmap`).
 
-    Gradients through events are first derivatives (no Hessians through events: they are not
-    the execution's second derivatives), which is what optax's first-order methods use.
+    Each step takes the first derivative through the events, which is what optax's first-order
+    methods use (second derivatives through events: `jax.hessian` of the objective).
 
     !!! Example
 

@@ -1,8 +1,10 @@
 """Location of an event: the root and minimum searches on the interpolant, the brackets, the
 simultaneity rule, the first event and the implicit-function event point."""
 
+import functools
 from collections.abc import Callable
 
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
@@ -208,45 +210,123 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
 
 
 def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
-    """The event time and pre-event state, differentiable by the implicit function theorem.
+    r"""The event time and pre-event state, differentiable to every order by the implicit
+    function theorem.
 
-    The event lies at the elapsed time u* = t* - t_s after the start t_s of its step. The
-    returned time is t_s + u* - (g(t, x*) - [g]) / [D_t g + D_x g F] and the state
-    x* + [F] (t - t*), with x* the dense output at the fixed elapsed time u*, F = F(t*, x*)
-    the true vector field and [.] meaning stop_gradient: equal in value to (t*, x*), with
+    The event lies at the elapsed time u* = t* - t_s after the start t_s of its step. Near it
+    the flow is written as its Taylor polynomial in the time w past u*, about the dense
+    output's state x* at the fixed elapsed time u*:
 
-        dt = dt_s - (D_t g dt_s + D_x g dx*) / gdot,    dx = dx* + F (dt - dt_s),
+        X(w; p) = x* + F w + [D_t F + D_x F F] w^2 / 2,   F = F(t_s + u*, x*),
 
-    where dx* carries the dependence on the epoch's start state and parameters (the dense
-    output's coefficients). Holding u* fixed, rather than t*, makes a shift of the epoch's
-    start time reach the event time directly: for an autonomous flow and guard the event time
-    moves one-for-one with it, exactly, whatever the solver's local error. (Through t* it
-    would arrive as D_x g xdot / D_x g F, with xdot the dense output's slope: 1 + O(tol) at
-    every epoch, an error of every later event's derivative that grows with the square of the
-    event count.) The denominator uses F, not xdot: the true slope, accurate to the
-    tolerance where the dense output's slope is one order less so.
+    p = (t_s, x*, args) (x* carries the dependence on the epoch's start state and parameters
+    through the dense output's coefficients). The event is the root w(p) of
+    G(w; p) = g(t_s + u* + w, X(w; p)): w = 0 in value, with the derivative
 
-    Also returns whether the crossing is grazing: |gdot| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
-    (6e-6 in float64), the flow nearly tangent to the guard, where that derivative is
+        dw = -(D_p G dp) / D_w G,     D_w G = D_t g + D_x g F   (the guard's rate along the flow),
+
+    and the returned time and state are t* + (t_s - [t_s]) + w and X(w; p) ([.]: stop-gradient).
+    `_located` gives w(p) and X(w(p); p) a JVP rule that calls `_located` itself, so its own
+    derivatives follow the same rule: every derivative of the event time is the implicit
+    function theorem's, and those up to the second are exact for the flow through x*(p) (a
+    third derivative would need the third time derivative of the flow, and the derivative of
+    the second, held here so that first derivatives never differentiate the flow twice: a
+    contact scene's flow is a KKT solve). X uses the true vector
+    field and its time derivative, not the dense output's slope and curvature, which are one
+    and two orders less accurate than the tolerance. Holding u* fixed, rather than t*, makes a
+    shift of the epoch's start time reach the event time directly: for an autonomous flow and
+    guard the event time moves one-for-one with it, exactly, whatever the solver's local error
+    (through t* it would arrive as D_x g xdot / D_x g F, with xdot the dense output's slope:
+    1 + O(tol) at every epoch, an error of every later event's derivative that grows with the
+    square of the event count).
+
+    Also returns whether the crossing is grazing: |D_w G| <= eps^(1/3) (|D_t g| + |D_x g| |F|)
+    (6e-6 in float64), the flow nearly tangent to the guard, where the derivative is
     ill-conditioned.
     """
     t_s = interp.t0
-    t_at = t_s + sg(t_star - t_s)  # the value t* (to rounding), the derivative of the step's start
+    u_star = sg(t_star - t_s)
     # The dense output at the fixed elapsed time u* for the derivative ((t_at - t_s) / h has
     # none), and at t* itself for the value: t_s + (t* - t_s) can round to a neighbour of t*.
-    x_at = interp.evaluate(t_at)
+    x_at = interp.evaluate(t_s + u_star)
     x_star = sg(interp.evaluate(t_star)) + (x_at - sg(x_at))
-    F = kern.flow(mode, t_at, x_star, args)
+    diff_args, rest = eqx.partition(args, eqx.is_inexact_array)
 
-    def g(tt, xx):
-        return kern.guards(mode, tt, xx, args)[k]
+    def local(w, p):
+        """(G, X, D_w G, D_w X) at (w; p), p = (t_s, x*, the args' inexact arrays)."""
+        ts, x0, da = p
+        a = eqx.combine(da, rest)
+        tt = ts + u_star
 
-    g_val = g(t_at, x_star)
-    gt, gx = jax.grad(g, argnums=(0, 1))(sg(t_star), sg(x_star))
-    gdot = sg(gt + unrolled_sum(gx * sg(F)))  # dg/dt along the true vector field (see `fold`)
-    size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(sg(F) ** 2))
+        def flow(t_, x_):
+            return kern.flow(mode, t_, x_, a)
+
+        def guard(t_, x_):
+            return kern.guards(mode, t_, x_, a)[k]
+
+        F = flow(tt, x0)
+        F_dot = sg(jax.jvp(flow, (tt, x0), (jnp.ones_like(tt), F))[1])
+        X = x0 + w * F + (0.5 * w * w) * F_dot
+        X_w = F + w * F_dot
+        G, G_w = jax.jvp(guard, (tt + w, X), (jnp.ones_like(tt), X_w))
+        return G, X, G_w, X_w
+
+    w0 = jnp.zeros_like(t_s)
+    p = (t_s, x_star, diff_args)
+    local_c, consts = _closure_converted(local, w0, p)
+    w, y_ev = _located(local_c, w0, p, consts)
+
+    # Grazing test on values alone.
+    t_v, x_v, a_v = sg((t_star, x_star, args))
+    F_v = kern.flow(mode, t_v, x_v, a_v)
+    gt, gx = jax.grad(lambda tt, xx: kern.guards(mode, tt, xx, a_v)[k], argnums=(0, 1))(t_v, x_v)
+    gdot = gt + unrolled_sum(gx * F_v)  # dg/dt along the true vector field (see `fold`)
+    size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(F_v**2))
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
-    safe = jnp.where(gdot != 0, gdot, 1.0)
-    shift = -(g_val - sg(g_val)) / safe  # zero in value
-    t_ev = t_star + (t_at - sg(t_at)) + shift
-    return t_ev, x_star + F * shift, grazing
+    t_ev = t_star + (t_s - sg(t_s)) + w
+    return t_ev, y_ev, grazing
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _located(local, w0, p, consts):
+    """The root w(p) = 0 of G(w; p) and the state X(w(p); p) = x* (`event_point`): in value
+    (0, x*); derivatives by `_located_jvp`.
+
+    Each output is selected against a sum over every input (never taken: XLA removes it), so
+    that under `jax.vmap` the outputs are batched wherever their tangents are: JAX's batching
+    of a custom JVP staged in a loop fails where a primal output is unbatched and its tangent
+    batched."""
+    leaves = jax.tree_util.tree_leaves((w0, p, consts))
+    every = sum(jnp.sum(leaf).astype(w0.dtype) for leaf in leaves if jnp.issubdtype(leaf.dtype, jnp.number))
+    never = jnp.zeros((), bool)
+    return jnp.where(never, every, w0), jnp.where(never, every.astype(p[1].dtype), p[1])
+
+
+@_located.defjvp
+def _located_jvp(local, primals, tangents):
+    """dw = -(D_p G dp) / D_w G and dX = D_p X dp + D_w X dw, both evaluated at (w(p), p) with
+    w(p) from `_located` itself, so that differentiating this rule applies it again."""
+    w0, p, consts = primals
+    _, dp, dconsts = tangents
+    w, x = _located(local, w0, p, consts)
+    # One JVP in p: the partial derivatives in w are outputs of `local` (the tangents of those
+    # outputs are not used, and XLA drops them).
+    (_, _, G_w, X_w), (G_p, X_p, _, _) = jax.jvp(lambda p_, c_: local(c_, w, p_), (p, consts), (dp, dconsts))
+    dw = (-G_p / jnp.where(G_w != 0, G_w, 1.0)).astype(w.dtype)  # tangency: 1, not 0 (`grazing`)
+    return (w, x), (dw, (X_p + X_w * dw).astype(x.dtype))
+
+
+def _closure_converted(fn, *example_args):
+    """`fn` as a function of its closure's arrays and its arguments, `(fn_c, consts)` with
+    `fn_c(consts, *args) == fn(*args)`: every array `fn` reads (the loop's tracers among them:
+    the engine's tables are built inside the traced call) becomes an argument of the custom
+    derivative, whose JVP rule may be traced after the loop's trace has ended (as
+    `jax.closure_convert`, which hoists only the values that may carry a tangent)."""
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
+    out_tree = jax.tree_util.tree_structure(out_shape)
+
+    def fn_c(consts, *args):
+        out = jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree_util.tree_leaves(args))
+        return jax.tree_util.tree_unflatten(out_tree, out)
+
+    return fn_c, list(closed.consts)
