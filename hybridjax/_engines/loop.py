@@ -27,10 +27,9 @@ An epoch is therefore one integration by the solver's own `step`, the controller
 while loop, `checkpointed` for reverse mode (as diffrax's `RecursiveCheckpointAdjoint`), `lax`
 for forward mode, `bounded` for both: a bare `lax.while_loop` cannot be reverse-differentiated.
 The guards are sampled on the dense output at constant fractions of the step (for an explicit
-Runge-Kutta solver, constant weights of its stages: `dense_weights`), and the event phase
-evaluates an explicit solver's dense output as a Chebyshev series of its stages
-(`ChebyshevDense`): elementwise arithmetic, where diffrax's interpolation is a small matrix
-product per evaluation.
+Runge-Kutta solver, constant weights of its stages, `dense_weights`: elementwise arithmetic,
+where diffrax's interpolation is a small matrix product per sample); events are located on
+diffrax's interpolation itself.
 
 Event times are differentiated by the implicit function theorem with the true vector field,
 dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder's
@@ -64,7 +63,7 @@ from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import ZenoOptions, detect_zeno
 from .._step.runge_kutta import UnrolledERK, weighted_sum
-from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
+from .dense_weights import dense_weights
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -201,10 +200,6 @@ class Loop:
         # Explicit Runge-Kutta (diffrax's, or the same unrolled): epochs after the first start
         # with the controller's last proposal (`first_step`).
         self.carry_step = carries_step(dt0, isinstance(solver, UnrolledERK | diffrax.AbstractERK))
-        # An explicit RK's dense output in the event phase as a Chebyshev series of its stages
-        # (elementwise arithmetic; diffrax's interpolation is a small matrix product per call).
-        self.cheb = (chebyshev_weights(solver.interpolation_cls, len(solver.c) + 1, dtype)
-                     if isinstance(solver, UnrolledERK) else None)
         self.save_ts = save_ts
         self.max_epochs = max_epochs
         self.max_steps = max_steps
@@ -588,12 +583,10 @@ class Loop:
         return _select(active, new, st_all), saved
 
     def dense(self, t, t_next, dense_info):
-        """The step's dense output on [t, t_next]: a `ChebyshevDense` for an explicit RK,
-        diffrax's interpolation otherwise."""
-        if self.cheb is not None:
-            d = dense_info
-            return ChebyshevDense.from_stages(self.cheb, t, t_next, d["y0"], d["y1"],
-                                              [d["k"][i] for i in range(d["k"].shape[0])])
+        """The step's dense output on [t, t_next]: diffrax's interpolation, where events are
+        located (near grazing a root moves by the rounding error of g over its slope, and a
+        re-expansion of the polynomial, in the Chebyshev basis or by stage weights, adds to
+        that error)."""
         return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
 
     def resolve_stage(self, st: LoopState, saved):
