@@ -589,6 +589,10 @@ class BatchedLoop:
         k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
         ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
         interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)
+        # The coefficients computed once: without the barrier XLA recomputes their sums of the
+        # stages inside each fusion that reads the interpolant (event_point's several
+        # evaluations), a third of the run time of a batch of balls.
+        interp = eqx.tree_at(lambda i: i.coeffs, interp, lax.optimization_barrier(interp.coeffs))
         t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e)
         if K:
             t_r, y_r, a_r = mask_inputs(any_event & ~blocks(k, K), (t_ev, y_before, args))
