@@ -69,9 +69,8 @@ from .._step.runge_kutta import (
     pid_controller,
     rk_error_estimate,
     scaled_error,
-    weighted_sum,
 )
-from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
+from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
 from .lanes import Finals, LaneRecord, Lanes, _gather_lanes, _scatter_lanes, _take_lanes, default_block
 from .xla_cpu import _computed_once, _materialize, _rows_all, _rows_any, first_lanes, running_count
 
@@ -670,10 +669,9 @@ class BatchedLoop:
                 samples, slopes = [], []
                 last = len(self.thetas) - 1
                 for i in range(len(self.thetas)):
-                    (va, vb, vc), (da, db, dc) = self.w_value[i], self.w_slope[i]
                     samples.append(y_sg if i == 0 else y1_sg if i == last else
-                                   va * y_sg + vb * y1_sg + weighted_sum(vc, ks_sg, y_sg))
-                    slopes.append((da * y_sg + db * y1_sg + weighted_sum(dc, ks_sg, y_sg)) / safe_h)
+                                   stage_combination(self.w_value[i], y_sg, y1_sg, ks_sg))
+                    slopes.append(stage_combination(self.w_slope[i], y_sg, y1_sg, ks_sg) / safe_h)
 
                 def guard_jvp(m, tt, yy, yd, a):
                     return jax.jvp(lambda t_, y_: kern.slot_guards(m, t_, y_, sg(a)), (tt, yy),

@@ -46,6 +46,13 @@ def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str
     return out
 
 
+def stage_combination(weights, y0, y1, ks):
+    """a y0 + b y1 + sum_i c_i k_i for one `(a, b, [c_i])` of `dense_weights` (or a row of
+    `chebyshev_weights`): the dense output's value or slope at one fraction, elementwise."""
+    a, b, c = weights
+    return a * y0 + b * y1 + weighted_sum(c, list(ks), y0)
+
+
 @functools.lru_cache(maxsize=16)
 def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype: str):
     """The compiled function behind `_dense_weights`: the interpolant and its theta-derivative
@@ -103,8 +110,7 @@ class ChebyshevDense(eqx.Module):
 
     @classmethod
     def from_stages(cls, A, t0, t1, y0, y1, ks):
-        rows = [jnp.asarray(r[0], y0.dtype) * y0 + jnp.asarray(r[1], y0.dtype) * y1
-                + weighted_sum(r[2:], list(ks), y0) for r in A]
+        rows = [stage_combination((r[0], r[1], r[2:]), y0, y1, ks) for r in A]
         return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
 
     def evaluate(self, t):

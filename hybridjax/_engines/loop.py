@@ -62,8 +62,8 @@ from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import ZenoOptions, detect_zeno
-from .._step.runge_kutta import UnrolledERK, weighted_sum
-from .dense_weights import dense_weights
+from .._step.runge_kutta import UnrolledERK
+from .dense_weights import dense_weights, stage_combination
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -189,7 +189,6 @@ class Loop:
         self.kern = Kernels(system, args, dtype)
         self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
         self.zeno = zeno
-        self.max_wait = MAX_WAIT
         self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
         self.t1 = t1
@@ -440,13 +439,26 @@ class Loop:
         return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
 
     # ----------------------------------------------------------------- one step
+    def _sample_times(self, t, t_next):
+        """The step's sample times, no gradient: its start, `interior_points` equally spaced
+        interior points, its end."""
+        frac = jnp.arange(1, self.interior_points + 1, dtype=self.dtype) / (self.interior_points + 1)
+        return jnp.concatenate([sg(t)[None], sg(t) + (sg(t_next) - sg(t)) * frac, sg(t_next)[None]])
+
+    def _accept(self, st: LoopState, t_next, y1, solver_state, made_jump, g_end) -> LoopState:
+        """`st` moved to the end of its accepted step (the epoch goes on), T1_REACHED at t1."""
+        accepted = eqx.tree_at(
+            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
+            st,
+            (t_next, y1, solver_state, made_jump, g_end, jnp.array(0, jnp.int32)),
+        )
+        return _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
+
     def _samples(self, kern, mode, t, t_next, y0, y1, dense_info, args_sg):
         """The sample times of a step (start, `interior_points` interior points, end), the dense
         output there and the watched values with their slopes along the step."""
         m = self.interior_points
-        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
-        s = jnp.concatenate([sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
-        s_ext = jnp.concatenate([sg(t)[None], s])
+        s_ext = self._sample_times(t, t_next)
         one = jnp.ones_like(s_ext[0])
         # The dense output on the unit interval, at constant fractions theta: its polynomials
         # in theta fold to constants at compile time, leaving one weighted sum of the stages
@@ -460,13 +472,8 @@ class Loop:
             d = sg(dense_info)
             ks = [d["k"][i] for i in range(d["k"].shape[0])]
             value, slope = dense_weights(self.solver.interpolation_cls, len(ks), thetas, self.dtype)
-
-            def combine(w):
-                a, b, c = w
-                return jnp.asarray(a, self.dtype) * d["y0"] + jnp.asarray(b, self.dtype) * d["y1"] + \
-                    weighted_sum(c, ks, d["y0"])
-
-            samples = [(combine(v), combine(sl)) for v, sl in zip(value, slope, strict=True)]
+            samples = [tuple(stage_combination(w, d["y0"], d["y1"], ks) for w in pair)
+                       for pair in zip(value, slope, strict=True)]
         else:
             unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
             samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,)) for th in thetas]
@@ -559,12 +566,7 @@ class Loop:
             st,
             (h_new, ctrl_state, st.num_steps + 1, st.num_rejected + (~keep).astype(jnp.int32)),
         )
-        accepted = eqx.tree_at(
-            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
-            counted,
-            (t_next, y1, solver_state, made_jump, G[-1], jnp.array(0, jnp.int32)),
-        )
-        accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
+        accepted = self._accept(counted, t_next, y1, solver_state, made_jump, G[-1])
         pending = eqx.tree_at(
             lambda s: (s.pending, s.waited, s.p_t0, s.p_t1, s.p_y1, s.p_dense, s.p_solver_state,
                        s.p_made_jump, s.p_g_end, s.p_det),
@@ -601,9 +603,7 @@ class Loop:
         interp = self.dense(t, t_next, dense_info)
         interp_sg = self.dense(sg(t), sg(t_next), sg(dense_info))
         args_sg = sg(args)
-        m = self.interior_points
-        frac = jnp.arange(1, m + 2, dtype=self.dtype) / (m + 1)
-        s_ext = jnp.concatenate([sg(t)[None], sg(t) + (sg(t_next) - sg(t)) * frac[:-1], sg(t_next)[None]])
+        s_ext = self._sample_times(t, t_next)
         h = sg(t_next - t)
         tol = event_time_tol(self.event_tol, sg(t_next), h, self.eps)
 
@@ -620,12 +620,7 @@ class Loop:
                            t_next)
 
         base = eqx.tree_at(lambda s: s.pending, st, jnp.array(False))
-        accepted = eqx.tree_at(
-            lambda s: (s.t, s.y, s.solver_state, s.made_jump, s.g_prev, s.zero_run),
-            base,
-            (t_next, st.p_y1, st.p_solver_state, st.p_made_jump, st.p_g_end, jnp.array(0, jnp.int32)),
-        )
-        accepted = _stop(accepted, (t_next >= self.t1, Status.T1_REACHED))
+        accepted = self._accept(base, t_next, st.p_y1, st.p_solver_state, st.p_made_jump, st.p_g_end)
         # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
         blocked = eqx.tree_at(lambda s: (s.t, s.y), base, (t_ev, y_before))
         evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
@@ -653,10 +648,10 @@ class Loop:
     # ----------------------------------------------------------------- the loops
     def due(self, st: LoopState):
         """Whether the event phase is due: every running execution waits for it, or one has
-        waited `max_wait` iterations (under `jax.vmap`, one decision for the whole batch)."""
+        waited `MAX_WAIT` iterations (under `jax.vmap`, one decision for the whole batch)."""
         waiting = (st.pending | st.at_start) & ~st.done
         return eqxi.unvmap_all(waiting | st.done) | (eqxi.unvmap_max(jnp.where(waiting, st.waited, 0))
-                                                     >= self.max_wait)
+                                                     >= MAX_WAIT)
 
     def body(self, carry):
         """One iteration: the event phase where it is due (`due`), then a step of every
@@ -676,9 +671,9 @@ class Loop:
     def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
         carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
         # Steps, zero-length epochs, and the waits for the event phase: alone, an execution
-        # never waits; under vmap at most max_wait iterations before each event or epoch start
+        # never waits; under vmap at most MAX_WAIT iterations before each event or epoch start
         # (a held step whose dip stays positive waits too, and is not counted here).
-        bound = self.max_steps + (self.max_epochs + 2) * (self.max_wait + 2)
+        bound = self.max_steps + (self.max_epochs + 2) * (MAX_WAIT + 2)
         st, rec = eqxi.while_loop(
             lambda c: ~c[0].done,
             self.body,
