@@ -421,11 +421,20 @@ def transition_graph(system, sol=None, ax=None):
 # ----------------------------------------------------------------------------- scene animation
 
 
+def _frozen(value):
+    """Lists, tuples and arrays, nested, as tuples (hashable); the rest as given."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return _frozen(value.tolist())
+    return value
+
+
 def _items(value):
     """A mapping as a tuple of (key, value) pairs (hashable, ordered); other sequences as tuples."""
     if isinstance(value, dict):
-        return tuple(value.items())
-    return tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        return tuple((k, _frozen(v)) for k, v in value.items())
+    return _frozen(tuple(value))
 
 
 def _is_index(i) -> bool:
