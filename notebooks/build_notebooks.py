@@ -334,8 +334,8 @@ points to draw (here the ends, as functions of $q$, and the centre, coordinates 
 where each contact is drawn; `hjp.animate_scene` marks the contacts whose gap is 0 and draws their forces as arrows."""),
         ("code", """rod_args = {"m": jnp.asarray(1.0), "g": jnp.asarray(9.81), "L": jnp.asarray(1.0)}
 rod = hj.contact_system(examples.rod_scene(), ["free"], rod_args)
-rod_sol = hj.simulate(rod, jnp.array([0.1, 0.5, 0.3, 0.0, 0.0, 0.0]), "free", 0.0, 0.8, rod_args,
-                      saveat=jnp.linspace(0.0, 0.8, 41), max_epochs=8)
+rod_sol = hj.simulate(rod, jnp.array([0.1, 0.5, 0.3, 0.0, 0.0, 0.0]), "free", 0.0, 0.45, rod_args,
+                      saveat=jnp.linspace(0.0, 0.45, 46), max_epochs=8)
 
 def end(sign):
     return lambda q, p: jnp.stack([q[0] + sign * 0.5 * p["L"] * jnp.cos(q[2]), q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])])
@@ -343,7 +343,7 @@ def end(sign):
 drawing = hjp.SceneDrawing(points={"left": end(-1.0), "right": end(1.0), "centre": (0, 1)},
                            segments=[("left", "right")], contacts={"left": "left", "right": "right"},
                            ground=[((-0.6, 0.0), (0.8, 0.0))])
-fig, ax = plt.subplots(figsize=(6, 3))
+fig, ax = plt.subplots(figsize=(6, 3), dpi=60)
 anim = hjp.animate_scene(rod_sol, drawing, ax=ax)
 plt.close(fig)
 from IPython.display import HTML
