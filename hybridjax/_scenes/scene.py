@@ -198,9 +198,9 @@ class Scene(eqx.Module):
       states from when it searches for achievable transitions.
     - `t_range`: `(t_lo, t_hi)`, the times sampled (for time-varying constraints or forces).
     - `names`: optional names of the coordinates (plot labels of $q$; $\dot q$'s get a `d`).
-    - `velocity_terms`: add the Coriolis and centrifugal forces of $M(q)$ to `forces`
-      (`mechanics.velocity_forces`, the Euler-Lagrange equations); `False` where `forces`
-      already holds them.
+    - `velocity_terms`: add the Coriolis and centrifugal forces of $M(q)$,
+      $-\dot M \dot q + \tfrac12 \partial_q(\dot q^\top M \dot q)$ (the Euler-Lagrange
+      equations; derived by AD), to `forces`; `False` where `forces` already holds them.
 
     Errors at definition name the constraint at fault.
 
