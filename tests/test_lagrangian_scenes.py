@@ -26,15 +26,18 @@ def polar_forces(t, q, dq, p):
     return p["k"] * jnp.stack([r * dth**2, -2.0 * r * dr * dth])
 
 
+RING = 2.0
+
+
 def polar_scene(velocity_terms):
-    """A free particle of unit mass in polar coordinates q = (r, theta), T = (r'^2 + r^2 theta'^2) / 2,
-    with a circular wall r >= 1/2 that the tests' motions do not reach."""
+    """A particle of unit mass in polar coordinates q = (r, theta), T = (r'^2 + r^2 theta'^2) / 2,
+    no applied force (with p["k"] = 0), inside a ring r <= 2."""
     return hj.Scene(
         2,
         lambda q, p: jnp.diag(jnp.stack([1.0 + 0.0 * q[0], q[0] ** 2])),
         polar_forces,
-        [hj.Constraint("wall", lambda t, q, p: q[0] - 0.5)],
-        q_range=((0.9, -1.0), (2.0, 1.0)),
+        [hj.Constraint("ring", lambda t, q, p: RING - q[0])],
+        q_range=((0.9, -1.0), (RING, 1.0)),
         dq_range=(-2.0, 2.0),
         velocity_terms=velocity_terms,
     )
@@ -45,15 +48,34 @@ def polar_system(velocity_terms):
     return hj.contact_system(polar_scene(velocity_terms), ["free"], {"k": jnp.asarray(0.0)})
 
 
+def _polar_run(x0, mode):
+    # mode as an array and the same saves: one compiled program for both runs.
+    system = polar_system(True)
+    return hj.simulate(system, jnp.asarray(x0), jnp.asarray(system.mode_names.index(mode)), 0.0, 1.0,
+                       {"k": jnp.asarray(0.0)}, stepsize_controller=TIGHT, saveat=jnp.array([0.5, 1.0]))
+
+
 def test_polar_particle_moves_on_a_straight_line():
-    # Started at (x, y) = (1, 0) with velocity (0, 1): the straight line x = 1, y = t, so at t = 1
-    # r = sqrt(2), theta = pi/4, r' = y / r = 1/sqrt(2), theta' = 1 / r^2 = 1/2.
-    x0 = jnp.array([1.0, 0.0, 0.0, 1.0])
-    sol = hj.simulate(polar_system(True), x0, "free", 0.0, 1.0, {"k": jnp.asarray(0.0)},
-                      stepsize_controller=TIGHT)
+    # Started at (x, y) = (1, 0) with velocity (0, 1): the straight line x = 1, y = t, so
+    # r = sqrt(1 + t^2), theta = atan(t), r' = t / r, theta' = 1 / r^2; at t = 1 (sqrt 2, pi/4, ...).
+    sol = _polar_run([1.0, 0.0, 0.0, 1.0], "free")
     assert sol.status == hj.Status.T1_REACHED and int(sol.num_events) == 0
+    t = np.array([0.5, 1.0])
+    r = np.sqrt(1 + t**2)
+    np.testing.assert_allclose(sol.ys, np.stack([r, np.arctan(t), t / r, 1 / r**2], axis=1), rtol=0, atol=1e-9)
     np.testing.assert_allclose(sol.final_state, [math.sqrt(2), math.pi / 4, 1 / math.sqrt(2), 0.5],
                                rtol=0, atol=1e-9)
+
+
+def test_polar_particle_on_the_ring_feels_the_centripetal_force():
+    # Sliding along the ring r = 2 at theta' = w: uniform circular motion, the ring's force the
+    # centripetal m r w^2 (the centrifugal term r theta'^2 of the velocity forces, balanced).
+    w = 0.5
+    system = polar_system(True)
+    sol = _polar_run([RING, 0.0, 0.0, w], "ring")
+    assert sol.status == hj.Status.T1_REACHED and int(sol.num_events) == 0
+    np.testing.assert_allclose(sol.final_state, [RING, w, 0.0, w], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(system.contact_forces(sol), [[RING * w**2]] * 2, rtol=0, atol=1e-9)
 
 
 def test_polar_particle_flow_with_velocity_terms_written_by_hand():
