@@ -616,8 +616,10 @@ def animate_scene(sol, drawing: SceneDrawing, times=None, ax=None, interval: flo
     and segments, its contacts marked (red) where their gaps are 0, their forces as arrows; the
     time and mode in the title. Frames at the saved states, or at `times` (`scene_frames`).
 
-    Returns a `matplotlib.animation.FuncAnimation`: `anim.to_jshtml()` shows it in a notebook
-    (`IPython.display.HTML`), `anim.save("run.gif", writer="pillow")` writes a file.
+    Returns a `matplotlib.animation.FuncAnimation` (`interval` milliseconds between frames):
+    `anim.to_jshtml()` shows it in a notebook (`IPython.display.HTML`; close the figure,
+    `plt.close(ax.figure)`, so that it is not shown as well), `anim.save("run.gif",
+    writer="pillow")` writes a file.
 
     !!! Example
 
