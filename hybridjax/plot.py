@@ -9,6 +9,9 @@
 - `batch(sol, component)`: many executions at once (alpha-blended), from their saved states.
 - `status_histogram(result)`, `zeno_histogram(result)`: Monte Carlo summaries.
 - `transition_graph(system)`: modes and transitions; edges seen in an execution solid.
+- `animate_scene(sol, drawing)`: an animation of a planar scene's execution (`SceneDrawing`:
+  points, segments, contacts), contacts marked and their forces as arrows; `scene_frames` gives
+  what it draws.
 
 Every function takes an optional `ax` and returns it. Where colour encodes the mode, a legend
 names the modes; axis labels use the modes' component names (`Mode(..., names=("h", "v"))`);
@@ -31,8 +34,11 @@ modes of different dimension it puts one quantity on one axis.
     ```
 """
 
+import functools
 import math
+from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -410,3 +416,266 @@ def transition_graph(system, sol=None, ax=None):
     ax.set_aspect("equal")
     ax.axis("off")
     return ax
+
+
+# ----------------------------------------------------------------------------- scene animation
+
+
+def _frozen(value):
+    """Lists, tuples and arrays, nested, as tuples (hashable); the rest as given."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return _frozen(value.tolist())
+    return value
+
+
+def _items(value):
+    """A mapping as a tuple of (key, value) pairs (hashable, ordered); other sequences as tuples."""
+    if isinstance(value, dict):
+        return tuple((k, _frozen(v)) for k, v in value.items())
+    return _frozen(tuple(value))
+
+
+def _is_index(i) -> bool:
+    return isinstance(i, (int, np.integer)) and not isinstance(i, bool) and i >= 0
+
+
+class SceneDrawing(eqx.Module):
+    r"""How to draw a planar scene (`hj.Scene`): named points of the plane as functions of its
+    coordinates $q$, the segments between them, and the point where each contact is drawn.
+
+    **Arguments:**
+
+    - `points`: `{name: spec}`, each spec a pair `(i, j)` of coordinate indices (the point
+      $(q_i, q_j)$) or a function `p(q, args) -> (x, y)`.
+    - `segments`: pairs `(name, name)` of points joined by a line (a rod, a leg).
+    - `contacts`: `{constraint name: point name}`: the point marked while the constraint's gap is
+      0 (to `contact_tol`) and where its force is drawn.
+    - `ground`: fixed segments `((x0, y0), (x1, y1))` drawn in grey (a floor, a wall).
+    - `force_scale`: the length of the arrow of a unit force; `None` draws the largest force of
+      the animation at a fifth of the view's width.
+    - `contact_tol`: the gap below which a contact is marked.
+
+    A contact's arrow is the planar force $F$ at its point $p(q)$ that does the work of its
+    generalised force, $J_p^\top F = J_a^\top \lambda_a + J_b^\top \lambda_t$ (normal and, with
+    friction, tangential force from `contact_forces`; $J_p = \partial p / \partial q$), solved by
+    least squares: the contact's force itself when its gap depends on $q$ through $p$ alone.
+
+    Errors at construction name the field at fault; `animate_scene` checks the names and
+    indices against the scene.
+
+    !!! Example
+
+        ```python
+        drawing = hjp.SceneDrawing(
+            points={"ball": (0, 1)},                      # (q[0], q[1])
+            contacts={"floor": "ball"},
+            ground=[((-1.0, 0.0), (3.0, 0.0))],
+        )
+        ```
+    """
+
+    points: tuple = eqx.field(static=True, converter=_items)
+    segments: tuple = eqx.field(static=True, default=(), converter=_items)
+    contacts: tuple = eqx.field(static=True, default=(), converter=_items)
+    ground: tuple = eqx.field(static=True, default=(), converter=_items)
+    force_scale: float | None = eqx.field(static=True, default=None)
+    contact_tol: float = eqx.field(static=True, default=1e-6)
+
+    def __check_init__(self):
+        if not self.points:
+            raise ValueError("SceneDrawing: `points` must name at least one point.")
+        names = set()
+        for entry in self.points:
+            if not (isinstance(entry, tuple) and len(entry) == 2 and isinstance(entry[0], str)):
+                raise TypeError(f"SceneDrawing: `points` must map names to specs, got {entry!r}.")
+            name, spec = entry
+            pair = isinstance(spec, (tuple, list)) and len(spec) == 2 and all(_is_index(i) for i in spec)
+            if not (callable(spec) or pair):
+                raise TypeError(
+                    f"SceneDrawing: `points['{name}']` must be a pair of coordinate indices or a "
+                    f"function p(q, args) -> (x, y), got {spec!r}."
+                )
+            names.add(name)
+        for k, seg in enumerate(self.segments):
+            if not (isinstance(seg, tuple) and len(seg) == 2):
+                raise TypeError(f"SceneDrawing: `segments[{k}]` must be a pair of point names, got {seg!r}.")
+            for end in seg:
+                if end not in names:
+                    raise ValueError(f"SceneDrawing: `segments[{k}]` names unknown point {end!r}.")
+        for entry in self.contacts:
+            if not (isinstance(entry, tuple) and len(entry) == 2 and isinstance(entry[0], str)):
+                raise TypeError(f"SceneDrawing: `contacts` must map constraints to points, got {entry!r}.")
+            if entry[1] not in names:
+                raise ValueError(f"SceneDrawing: `contacts['{entry[0]}']` names unknown point {entry[1]!r}.")
+        for k, seg in enumerate(self.ground):
+            if np.shape(seg) != (2, 2):
+                raise ValueError(f"SceneDrawing: `ground[{k}]` must be ((x0, y0), (x1, y1)), got {seg!r}.")
+        if self.force_scale is not None and not (np.isfinite(self.force_scale) and self.force_scale > 0):
+            raise ValueError(f"SceneDrawing: `force_scale` must be > 0 or None, got {self.force_scale!r}.")
+        if not (np.isfinite(self.contact_tol) and self.contact_tol >= 0):
+            raise ValueError(f"SceneDrawing: `contact_tol` must be >= 0, got {self.contact_tol!r}.")
+
+    def point_function(self, name: str):
+        """`p(q, args) -> (2,)` of the point `name`."""
+        spec = dict(self.points)[name]
+        if callable(spec):
+            return lambda q, args: jnp.reshape(jnp.asarray(spec(q, args), q.dtype), (2,))
+        i, j = spec
+        return lambda q, args: jnp.stack([q[i], q[j]])
+
+
+class SceneFrames(NamedTuple):
+    """What `animate_scene` draws, frame by frame (F frames, P points, C contacts of the drawing)."""
+
+    times: np.ndarray  # (F,)
+    modes: np.ndarray  # (F,) mode index
+    points: np.ndarray  # (F, P, 2), in the order of `SceneDrawing.points`
+    touching: np.ndarray  # (F, C) bool: the contact's gap is 0 (to `contact_tol`)
+    forces: np.ndarray  # (F, C, 2) the contacts' planar forces (0 where not held)
+
+
+def _scalar(fn):
+    """A constraint's function `fn(t, q, args)` as a scalar of q's dtype."""
+    return lambda t, q, args: jnp.reshape(jnp.asarray(fn(t, q, args), q.dtype), ())
+
+
+def _gradients(fn, ts, q, args):
+    """The gradients in q of a constraint's function at the frames' (t, q): (F, n)."""
+    return jax.vmap(jax.grad(_scalar(fn), argnums=1), in_axes=(0, 0, None))(jnp.asarray(ts), q, args)
+
+
+def _check_drawing(drawing: SceneDrawing, scene) -> None:
+    for name, spec in drawing.points:
+        if not callable(spec) and max(spec) >= scene.dim:
+            raise ValueError(
+                f"SceneDrawing: `points['{name}']` = {spec} indexes past the scene's {scene.dim} coordinates."
+            )
+    for constraint, _ in drawing.contacts:
+        if constraint not in scene.constraint_names:
+            raise ValueError(
+                f"SceneDrawing: `contacts` names unknown constraint '{constraint}'; the scene's "
+                f"constraints: {list(scene.constraint_names)}."
+            )
+
+
+def scene_frames(sol, drawing: SceneDrawing, times=None) -> SceneFrames:
+    """The drawn positions, marked contacts and force arrows of one execution of a contact
+    system (`hj.contact_system`) at the saved states (`saveat`), or at `times` (the dense output,
+    `Solution.evaluate`); times the execution did not reach are left out."""
+    system = sol.system
+    scene = getattr(system, "scene", None)
+    if scene is None or not hasattr(system, "contact_forces"):
+        raise TypeError("scene_frames needs a solution of a contact system (hj.contact_system).")
+    _check_drawing(drawing, scene)
+    if times is not None:
+        ts = jnp.asarray(times, sol.final_time.dtype)
+        ys, modes = sol.evaluate(ts)
+        sol = eqx.tree_at(lambda s: (s.ts, s.ys, s.saved_modes), sol, (ts, ys, modes))
+    if np.ndim(sol.ts) != 1:
+        raise ValueError("scene_frames draws one execution, not a batch.")
+    keep = (np.asarray(sol.saved_modes) >= 0) & np.isfinite(np.asarray(sol.ts))
+    if not keep.any():
+        raise ValueError("scene_frames: no state to draw (give `saveat` to simulate, or `times`).")
+    lam = np.asarray(system.contact_forces(sol))[keep]
+    ts, ys, modes = (np.asarray(a)[keep] for a in (sol.ts, sol.ys, sol.saved_modes))
+    n, args = scene.dim, sol.args
+    q = jnp.asarray(ys[:, :n])
+    names = [name for name, _ in drawing.points]
+    pts = np.stack([np.asarray(jax.vmap(functools.partial(drawing.point_function(p), args=args))(q))
+                    for p in names], axis=1)
+    columns = list(system.force_names)
+    touching, forces = [], []
+    for constraint, point in drawing.contacts:
+        c = scene.constraints[scene.index(constraint)]
+        p_fn = drawing.point_function(point)
+        gap = jax.vmap(lambda t, q_, c=c: _scalar(c.fn)(t, q_, args))(jnp.asarray(ts), q)
+        touching.append(np.abs(np.asarray(gap)) <= drawing.contact_tol)
+        # The generalised force J_a^T lambda_n (+ J_b^T lambda_t), then F from J_p^T F = it.
+        lam_n = jnp.asarray(lam[:, columns.index(constraint)])
+        gen = _gradients(c.fn, ts, q, args) * lam_n[:, None]
+        if c.tangent is not None:
+            lam_t = jnp.asarray(lam[:, columns.index(constraint + ".t")])
+            gen = gen + _gradients(c.tangent, ts, q, args) * lam_t[:, None]
+        J_p = np.asarray(jax.vmap(jax.jacfwd(p_fn), in_axes=(0, None))(q, args))  # (F, 2, n)
+        rows = zip(J_p, np.asarray(gen), strict=True)
+        forces.append(np.stack([np.linalg.lstsq(J.T, g, rcond=None)[0] for J, g in rows]))
+    C = len(drawing.contacts)
+    return SceneFrames(
+        times=ts,
+        modes=modes,
+        points=pts,
+        touching=np.stack(touching, axis=1) if C else np.zeros((len(ts), 0), bool),
+        forces=np.stack(forces, axis=1) if C else np.zeros((len(ts), 0, 2)),
+    )
+
+
+def animate_scene(sol, drawing: SceneDrawing, times=None, ax=None, interval: float = 40.0):
+    """A matplotlib animation of one execution of a planar contact system: the drawing's points
+    and segments, its contacts marked (red) where their gaps are 0, their forces as arrows; the
+    time and mode in the title. Frames at the saved states, or at `times` (`scene_frames`).
+
+    Returns a `matplotlib.animation.FuncAnimation` (`interval` milliseconds between frames):
+    `anim.to_jshtml()` shows it in a notebook (`IPython.display.HTML`; close the figure,
+    `plt.close(ax.figure)`, so that it is not shown as well), `anim.save("run.gif",
+    writer="pillow")` writes a file.
+
+    !!! Example
+
+        ```python
+        sol = hj.simulate(system, x0, "free", 0.0, 2.0, args, saveat=jnp.linspace(0.0, 2.0, 50))
+        anim = hjp.animate_scene(sol, drawing)
+        anim.save("ball.gif", writer="pillow", fps=25)
+        ```
+    """
+    from matplotlib.animation import FuncAnimation
+
+    frames = scene_frames(sol, drawing, times)
+    ax = _ax(ax)
+    names = [name for name, _ in drawing.points]
+    index = {name: k for k, name in enumerate(names)}
+    for (x0, y0), (x1, y1) in drawing.ground:
+        ax.plot([x0, x1], [y0, y1], color="0.5", lw=2.0, label="_ground")
+    # The view: every point of every frame and the ground, padded.
+    xy = frames.points.reshape(-1, 2)
+    if drawing.ground:
+        xy = np.concatenate([xy, np.asarray(drawing.ground, float).reshape(-1, 2)])
+    lo, hi = np.nanmin(xy, axis=0), np.nanmax(xy, axis=0)
+    pad = 0.1 * max(float(np.max(hi - lo)), 1e-3)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    width = hi[0] - lo[0] + 2 * pad
+    largest = float(np.max(np.linalg.norm(frames.forces, axis=-1), initial=0.0))
+    scale = drawing.force_scale or (0.2 * width / largest if largest > 0 else 1.0)
+
+    segments = [ax.plot([], [], color="k", lw=2.5, solid_capstyle="round", label="_segment")[0]
+                for _ in drawing.segments]
+    (dots,) = ax.plot([], [], "o", color="tab:blue", ms=7, label="_points")
+    (marks,) = ax.plot([], [], "s", mfc="none", mec="tab:red", ms=12, mew=1.5, label="_contacts")
+    C = len(drawing.contacts)
+    at = [index[p] for _, p in drawing.contacts]
+    arrows = None
+    if C:
+        zero = np.zeros(C)
+        arrows = ax.quiver(zero, zero, zero, zero, angles="xy", scale_units="xy", scale=1.0, color="tab:red",
+                           width=0.006, label="_forces")
+    mode_names = sol.system.mode_names
+
+    def draw(f):
+        pts = frames.points[f]
+        for line, (a, b) in zip(segments, drawing.segments, strict=True):
+            line.set_data([pts[index[a], 0], pts[index[b], 0]], [pts[index[a], 1], pts[index[b], 1]])
+        dots.set_data(pts[:, 0], pts[:, 1])
+        touch = [k for k in range(C) if frames.touching[f, k]]
+        marks.set_data(pts[[at[k] for k in touch], 0], pts[[at[k] for k in touch], 1])
+        if arrows is not None:
+            arrows.set_offsets(pts[at])
+            arrows.set_UVC(scale * frames.forces[f, :, 0], scale * frames.forces[f, :, 1])
+        ax.set_title(f"t = {frames.times[f]:.3f}, {mode_names[int(frames.modes[f])]}")
+        return [*segments, dots, marks] + ([arrows] if arrows is not None else [])
+
+    anim = FuncAnimation(ax.figure, draw, frames=len(frames.times), interval=interval, blit=False)
+    draw(0)
+    return anim

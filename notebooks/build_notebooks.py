@@ -326,6 +326,29 @@ a2.plot(ts, forces[0, :, 0], label="$\\lambda_G$"); a2.plot(ts, forces[0, :, 1],
 a2.axhline(9.81 * np.cos(np.pi / 4), color="gray", ls=":")
 a2.set_xlabel("t"); a2.set_ylabel("contact force"); a2.legend(); plt.show()"""),
         ("md", """On the floor the force is $m g$; on the ramp it is $m g \\cos\\theta$ (the dotted line); in flight both are 0."""),
+        ("md", """## Animating an execution
+
+A rod dropped tilted onto a frictionless floor (`examples.rod_scene()`, $q = (x, z, \\phi)$): it lands on its lower
+end, pivots and slides on it, lands on the other end and rests with $m g / 2$ on each. `hjp.SceneDrawing` says which
+points to draw (here the ends, as functions of $q$, and the centre, coordinates 0 and 1), which segments join them and
+where each contact is drawn; `hjp.animate_scene` marks the contacts whose gap is 0 and draws their forces as arrows."""),
+        ("code", """rod_args = {"m": jnp.asarray(1.0), "g": jnp.asarray(9.81), "L": jnp.asarray(1.0)}
+rod = hj.contact_system(examples.rod_scene(), ["free"], rod_args)
+rod_sol = hj.simulate(rod, jnp.array([0.1, 0.5, 0.3, 0.0, 0.0, 0.0]), "free", 0.0, 0.45, rod_args,
+                      saveat=jnp.linspace(0.0, 0.45, 46), max_epochs=8)
+
+def end(sign):
+    return lambda q, p: jnp.stack([q[0] + sign * 0.5 * p["L"] * jnp.cos(q[2]), q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])])
+
+drawing = hjp.SceneDrawing(points={"left": end(-1.0), "right": end(1.0), "centre": (0, 1)},
+                           segments=[("left", "right")], contacts={"left": "left", "right": "right"},
+                           ground=[((-0.6, 0.0), (0.8, 0.0))])
+fig, ax = plt.subplots(figsize=(6, 3), dpi=60)
+anim = hjp.animate_scene(rod_sol, drawing, ax=ax)
+plt.close(fig)
+from IPython.display import HTML
+HTML(anim.to_jshtml())"""),
+        ("md", """`anim.save("rod.gif", writer="pillow", fps=20)` writes the same animation to a file."""),
     ],
     "07_estimation_and_sensitivity": [
         ("md", """# Estimation and global sensitivity

@@ -96,11 +96,28 @@ class Kinematics(NamedTuple):
     G: jax.Array  # J M^-1 J^T
 
 
+def velocity_forces(mass, q, dq, args):
+    r"""The Coriolis and centrifugal forces of the mass matrix $M(q)$ = `mass(q, args)`:
+    $h(q, \dot q) = -\dot M \dot q + \tfrac12 \partial_q (\dot q^\top M(q) \dot q)$, so that the
+    Euler-Lagrange equations of $T = \tfrac12 \dot q^\top M(q) \dot q$ read
+    $M \ddot q = f + h$; componentwise $h_j = -\sum_{i,k} (\partial_i M_{jk} -
+    \tfrac12 \partial_j M_{ik}) \dot q_i \dot q_k$ (the Christoffel symbols of the first kind).
+    $\partial M$ by forward-mode AD ($n$ tangents); zero for a constant $M$."""
+    dM = jax.jacfwd(lambda q_: jnp.asarray(mass(q_, args), q.dtype))(q)  # dM[j, k, i] = d M_jk / d q_i
+    Mdot_dq = jnp.einsum("jki,i,k->j", dM, dq, dq)
+    grad_T = jnp.einsum("abj,a,b->j", dM, dq, dq)
+    return -Mdot_dq + 0.5 * grad_T
+
+
 def kinematics(scene, fns, t, q, dq, args) -> Kinematics:
     r"""The `Kinematics` of the rows `fns` at (t, q, dq), with $M^{-1} f$, $W = M^{-1} J^\top$
-    and $G = J W$ from one `small_linalg.spd_solve`: every solve at this state reuses them."""
+    and $G = J W$ from one `small_linalg.spd_solve`: every solve at this state reuses them.
+    $f$ is the scene's `forces` plus, unless `scene.velocity_terms` is False, the velocity
+    forces of $M(q)$ (`velocity_forces`)."""
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     f = jnp.asarray(scene.forces(t, q, dq, args), q.dtype)
+    if scene.velocity_terms:
+        f = f + velocity_forces(scene.mass, q, dq, args)
     if not fns:
         z, J = jnp.zeros((0,), q.dtype), jnp.zeros((0, q.shape[0]), q.dtype)
         return Kinematics(M, f, z, J, z, z, dq, small_linalg.spd_solve(M, f), J.T, jnp.zeros((0, 0), q.dtype))

@@ -198,6 +198,9 @@ class Scene(eqx.Module):
       states from when it searches for achievable transitions.
     - `t_range`: `(t_lo, t_hi)`, the times sampled (for time-varying constraints or forces).
     - `names`: optional names of the coordinates (plot labels of $q$; $\dot q$'s get a `d`).
+    - `velocity_terms`: add the Coriolis and centrifugal forces of $M(q)$,
+      $-\dot M \dot q + \tfrac12 \partial_q(\dot q^\top M \dot q)$ (the Euler-Lagrange
+      equations; derived by AD), to `forces`; `False` where `forces` already holds them.
 
     Errors at definition name the constraint at fault.
 
@@ -220,6 +223,7 @@ class Scene(eqx.Module):
     dq_range: tuple = eqx.field(static=True, default=(-1.0, 1.0), converter=_nested_tuple)
     t_range: tuple = eqx.field(static=True, default=(0.0, 0.0), converter=_nested_tuple)
     names: tuple[str, ...] | None = eqx.field(static=True, default=None, converter=_nested_tuple)
+    velocity_terms: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
         if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim < 1:
@@ -245,6 +249,8 @@ class Scene(eqx.Module):
             )
         if self.names is not None and len(self.names) != self.dim:
             raise ValueError(f"Scene: `names` needs {self.dim} entries, got {len(self.names)}.")
+        if not isinstance(self.velocity_terms, bool):
+            raise TypeError(f"Scene: `velocity_terms` must be a bool, got {self.velocity_terms!r}.")
 
     @property
     def constraint_names(self) -> tuple[str, ...]:
