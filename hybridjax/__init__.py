@@ -53,6 +53,10 @@ from ._optimise.shooting import Shooting as Shooting
 from ._optimise.shooting import ShootingResult as ShootingResult
 from ._optimise.shooting import shoot as shoot
 from ._optimise.shooting import with_running_cost as with_running_cost
+from ._rules.locate import AbstractEventLocator as AbstractEventLocator
+from ._rules.locate import BracketedNewton as BracketedNewton
+from ._rules.options import EventOptions as EventOptions
+from ._rules.options import SolveOptions as SolveOptions
 from ._scenes.scene import Constraint as Constraint
 from ._scenes.scene import ContactSystem as ContactSystem
 from ._scenes.scene import Relabel as Relabel
@@ -60,6 +64,12 @@ from ._scenes.scene import Scene as Scene
 from ._scenes.scene import contact_system as contact_system
 from ._solution.solution import Epoch as Epoch
 from ._solution.solution import Solution as Solution
+from ._solve.engines import AbstractEngine as AbstractEngine
+from ._solve.engines import AutoEngine as AutoEngine
+from ._solve.engines import BatchedEngine as BatchedEngine
+from ._solve.engines import DiffraxEngine as DiffraxEngine
+from ._solve.engines import FastEngine as FastEngine
+from ._solve.engines import VmapEngine as VmapEngine
 from ._solve.simulate import simulate as simulate
 from ._solve.simulate_batch import simulate_batch as simulate_batch
 
