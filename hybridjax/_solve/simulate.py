@@ -12,7 +12,7 @@ from .._definition.system import HybridSystem, as_mode_index
 from .._definition.validation import as_state_array, check_time_span
 from .._engines.loop import Loop
 from .._rules.options import SolveOptions
-from .._solution.solution import Solution
+from .._solution.solution import Solution, stepping
 from .._step.runge_kutta import split_clip
 from .eager import compiled_when_eager
 from .engines import AbstractEngine, as_engine, step_engine
@@ -198,5 +198,6 @@ def simulate(
         mode0=m0,
         args=args,
         system=system,
+        **stepping(run.solver, run.controller),
     )
 

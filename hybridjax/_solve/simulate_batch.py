@@ -17,7 +17,7 @@ from .._definition.validation import as_state_array, check_time_span
 from .._engines.batched import BatchedLoop
 from .._engines.lanes import as_status
 from .._rules.options import SolveOptions
-from .._solution.solution import Solution
+from .._solution.solution import Solution, stepping
 from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, split_clip
 from .eager import compiled_when_eager
 from .engines import AbstractEngine, AbstractStepEngine, AutoEngine, BatchedEngine, VmapEngine, as_engine
@@ -249,6 +249,9 @@ def simulate_batch(
             out = solve(t0, y0, m0, t1, part_args, shared_arrays)
         else:
             out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
+    def per_execution(a):  # an array of the run's solver or controller, batched as the fields are
+        return jnp.broadcast_to(a, (N,) + a.shape) if eqx.is_array(a) else a
+
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
     status = as_status(jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status")))
@@ -262,6 +265,7 @@ def simulate_batch(
     return Solution(
         **out, status=status, ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
+        **stepping(*jtu.tree_map(per_execution, (run.solver, run.controller))),
     )
 
 
