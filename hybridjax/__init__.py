@@ -13,7 +13,12 @@ from ._analysis.periodic import PeriodicOrbit as PeriodicOrbit
 from ._analysis.periodic import periodic_orbit as periodic_orbit
 from ._analysis.presets import PRESET_NAMES as PRESET_NAMES
 from ._analysis.presets import accuracy_preset as accuracy_preset
+from ._analysis.properties import Achievable as Achievable
+from ._analysis.properties import Chain as Chain
+from ._analysis.properties import Gap as Gap
+from ._analysis.properties import Overlap as Overlap
 from ._analysis.properties import PropertyReport as PropertyReport
+from ._analysis.properties import ResetOutside as ResetOutside
 from ._analysis.properties import check_properties as check_properties
 from ._analysis.saltation import VariationalJacobian as VariationalJacobian
 from ._analysis.saltation import saltation_matrix as saltation_matrix
