@@ -152,8 +152,10 @@ def _put_rows(arr, rows, value):
 
 
 def _select(pred, a, b):
-    """Per-execution `a if pred else b` on whole pytrees (Status items included)."""
-    return jtu.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
+    """Per-execution `a if pred else b` on whole pytrees (Status items included). Leaves that
+    are the same value in both (most of a state: a stage changes a few fields) are not
+    selected: the program carries one select per field that differs."""
+    return jtu.tree_map(lambda x, y: x if x is y else jnp.where(pred, x, y), a, b)
 
 
 def _stop(st: LoopState, *rules) -> LoopState:

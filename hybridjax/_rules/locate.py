@@ -39,7 +39,8 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     No gradients: the caller differentiates the event time by the implicit function theorem.
     """
     a, b, tol = lax.stop_gradient((a, b, tol))
-    fa, fb = f(a), f(b)
+    # Points evaluated together are one evaluation of f in the program, not one per point.
+    fa, fb = jax.vmap(f)(jnp.stack([a, b]))
     denom = fa - fb
     x0 = jnp.where(denom > 0, a + (b - a) * fa / jnp.where(denom > 0, denom, 1.0), 0.5 * (a + b))
     x0 = jnp.clip(x0, a, b)
@@ -81,10 +82,12 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
     xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
     ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
+    cands = xp + jnp.array([64.0, 16.0, 4.0], xp.dtype) * ulp
+    f_cands = jax.vmap(f)(cands)
     out = b
-    for m in (64.0, 16.0, 4.0):  # the last one written wins: the first good one
-        cand = xp + m * ulp
-        good = (f(cand) <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
+    for i in range(3):  # the last one written wins: the first good one
+        cand = cands[i]
+        good = (f_cands[i] <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
         out = jnp.where(good, cand, out)
     return out
 
@@ -100,8 +103,8 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
     a, b, x0, tol = lax.stop_gradient((a, b, x0, tol))
     one = jnp.ones_like(x0)
 
-    def slope(x):
-        return jax.jvp(f, (x,), (one,))[1]
+    def value_and_slope(x):
+        return jax.jvp(f, (x,), (one,))
 
     def cond(c):
         a, b, _, step, f_best, _, i = c
@@ -109,8 +112,8 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
 
     def body(c):
         a, b, x, _, f_best, x_best, i = c
-        fx = f(x)
-        d1, d2 = jax.jvp(slope, (x,), (one,))
+        # f, f' and f'' from one nested JVP (f' and f'' are its tangents).
+        (fx, d1), (_, d2) = jax.jvp(value_and_slope, (x,), (one,))
         better = fx < f_best
         f_best, x_best = jnp.where(better, fx, f_best), jnp.where(better, x, x_best)
         a = jnp.where(d1 < 0, x, a)
@@ -262,7 +265,8 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
-        cand = simultaneous_set(has, tk, t_min, tol, values_at(t_at), values_at(a[first]))
+        g_at, g_from = jax.vmap(values_at)(jnp.stack([t_at, a[first]]))
+        cand = simultaneous_set(has, tk, t_min, tol, g_at, g_from)
         i, simultaneous = resolve_simultaneous(cand)
         tk = jnp.where(cand & ~has, t_min, tk)
         return EventChoice(jnp.where(any_event, tk[i], t_end), i, simultaneous)
