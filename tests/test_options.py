@@ -7,6 +7,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from jax import lax
 
@@ -188,3 +189,24 @@ def test_evaluate_integrates_with_the_runs_solver_and_tolerance(solver, tol, mat
     if tol < 1e-10:  # a solution passed into jax.jit (its solver and controller static), one time
         y_one, _ = jax.jit(lambda s, t: s.evaluate(t))(sol, ts[3])
         np.testing.assert_allclose(y_one, ys[3], rtol=0, atol=match)
+
+
+# ---------------------------------------------------------------------------- one name for one thing
+def test_the_optimisers_and_the_filter_take_the_package_wide_names():
+    ts = jnp.linspace(0.0, 1.0, 5)
+    lqr = dict(control_args=lambda u: BALL_ARGS, x0=X0, mode0="flight", ts=ts, reference=jnp.zeros((5, 2)),
+               Q=jnp.eye(2), R=jnp.eye(1), Qf=jnp.eye(2))
+    # max_epochs: the most transitions recorded, as in simulate; max_events the same option
+    for kw in (dict(max_epochs=3), dict(max_events=3)):
+        problem = hj.HybridLQRProblem(BALL, **lqr, **kw)
+        assert problem.max_epochs == problem.max_events == 3
+        kf = hj.SaltedKalmanFilter(BALL, lambda t, x, a: x[:1], **kw)
+        assert kf.max_epochs == kf.max_events == 3
+    with pytest.raises(ValueError, match="max_epochs and max_events are the same option"):
+        hj.HybridLQRProblem(BALL, **lqr, max_epochs=3, max_events=3)
+    with pytest.raises(ValueError, match="max_epochs and max_events are the same option"):
+        hj.SaltedKalmanFilter(BALL, lambda t, x, a: x[:1], max_epochs=3, max_events=4)
+    # iterations: the optimiser's updates, in shoot as in hybrid_ilqr; steps the same option
+    problem = hj.Shooting(BALL, lambda p, sol: sol.final_state[0], X0, "flight", t1=1.0, args=BALL_ARGS)
+    with pytest.raises(ValueError, match="iterations and steps are the same option"):
+        hj.shoot(problem, jnp.asarray(1.0), optax.sgd(0.1), iterations=2, steps=2)
