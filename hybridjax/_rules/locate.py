@@ -174,8 +174,8 @@ class BracketedNewton(AbstractEventLocator):
     `max_iter` and `max_iter_minimum` bound the iterations of each.
     """
 
-    max_iter: int = eqx.field(static=True, default=64)  # static: a Python loop bound
-    max_iter_minimum: int = eqx.field(static=True, default=32)
+    max_iter: int = 64
+    max_iter_minimum: int = 32
 
     def __check_init__(self):
         for name in ("max_iter", "max_iter_minimum"):

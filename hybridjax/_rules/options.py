@@ -105,7 +105,7 @@ class SolveOptions(eqx.Module):
     # static: the record's length (a shape) and the while loop's bound.
     max_epochs: int = eqx.field(static=True, default=64)
     max_steps: int = eqx.field(static=True, default=4096)
-    max_zero_epochs: int = 16
+    max_zero_epochs: int = 16  # compared with a counter in the loop: may be traced
     events: EventOptions = EventOptions()
     zeno: ZenoOptions | None = ZenoOptions()
     throw: bool = eqx.field(static=True, default=False)  # static: decides whether a check is traced

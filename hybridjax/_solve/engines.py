@@ -99,11 +99,10 @@ class BatchedEngine(AbstractEngine):
     (an int or None), `devices` (None, an int, or a list of devices).
     """
 
-    # static: Python sizes that fix the shapes of the loop's arrays, and the devices (not arrays).
-    block: int | tuple[int, int | None] | None = eqx.field(static=True, default=None)
-    lanes: int | None = eqx.field(static=True, default=None)
-    devices: int | tuple | None = eqx.field(
-        static=True, default=None, converter=lambda d: tuple(d) if isinstance(d, list) else d)
+    block: int | tuple[int, int | None] | None = None
+    lanes: int | None = None
+    devices: int | tuple | None = eqx.field(default=None,
+                                           converter=lambda d: tuple(d) if isinstance(d, list) else d)
 
     def __check_init__(self):
         _check_block(self.block)

@@ -4,7 +4,7 @@ checked and completed for the run's dtype (`prepare`), the initial state, the sa
 promotion of `args`."""
 
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax
 import equinox as eqx
@@ -59,13 +59,13 @@ def solve_options(options: SolveOptions | None, shorthands: dict[str, Any], wher
     )
 
 
-class Prepared(eqx.Module):
+class Prepared(NamedTuple):
     """`prepare`'s result: the run's float type, loop kind and checkpoints, the solver and
     controller as diffrax would step them, and the options with the event tolerance filled in."""
 
-    dtype: Any = eqx.field(static=True)  # a NumPy dtype, not an array
-    kind: str = eqx.field(static=True)
-    checkpoints: int | None = eqx.field(static=True)
+    dtype: Any
+    kind: str
+    checkpoints: int | None
     solver: Any
     controller: Any
     options: SolveOptions
