@@ -30,8 +30,9 @@ SHORTHANDS: dict[str, Any] = dict(
 
 def solve_options(options: SolveOptions | None, shorthands: dict[str, Any], where: str) -> SolveOptions:
     """The run's `SolveOptions`: `options` itself, or built from the keyword shorthands (the
-    others at their defaults). Both at once is a `ValueError`; an unknown keyword a `TypeError`
-    naming it."""
+    others at their defaults; a shorthand given as None counts as not given). Both at once is a
+    `ValueError`; an unknown keyword a `TypeError` naming it."""
+    shorthands = {name: value for name, value in shorthands.items() if value is not None}
     unknown = sorted(set(shorthands) - set(SHORTHANDS))
     if unknown:
         raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}.")
