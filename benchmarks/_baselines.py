@@ -9,6 +9,11 @@
   loop" of the benchmarks' ratios. `loop="lax"`: the epochs in a `lax.while_loop` instead
   (forward only, no reverse mode), also measured and reported beside it.
 
+- `diffrax_epoch_scan`: one execution as a `lax.scan` over `max_epochs` epochs, each one
+  `diffrax.diffeqsolve` ended by a `diffrax.Event` (as `diffrax_lockstep`); a scan is what
+  reverse mode differentiates without a bounded loop. The first-call benchmark compiles it
+  beside `hj.simulate`.
+
 - `ball_bare_loop`: problem A only, on a bare hand-written lanes-last loop
   (hand-written Tsit5 step, one crossing test, Newton on the dense output under a `lax.cond`,
   no record, saves or status checks): what such a loop reaches with nothing
@@ -61,28 +66,9 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
     final_mode)`."""
     if loop not in ("bounded", "lax"):
         raise ValueError(f"loop={loop!r}: 'bounded' or 'lax'")
-    K, n = system.num_transitions, system.max_dim
-    sources = jnp.asarray(system.sources)
+    K = system.num_transitions
     targets = jnp.asarray(system.targets)
-
-    def flow(t, y, a):
-        mode, args = a
-        return lax.switch(mode, [lambda t, y, m=m: m.flow(t, y, args) for m in system.modes], t, y)
-
-    def cond_fn(k):
-        tr = system.transitions[k]
-
-        def fn(t, y, args, **kwargs):
-            mode, args = args
-            # Only a guard moving into {g <= 0} may fire (scipy's direction = -1); otherwise the
-            # solve right after a reset stops at once on the guard it just left.
-            g, gdot = jax.jvp(lambda t, y: tr.guard(t, y, args), (t, y), (jnp.ones_like(t), flow(t, y, (mode, args))))
-            return jnp.where((sources[k] == mode) & (gdot < 0), g, jnp.abs(g) + 1.0)
-
-        return fn
-
-    event = diffrax.Event([cond_fn(k) for k in range(K)], root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
-    term = diffrax.ODETerm(flow)
+    term, event = _epoch_parts(system)
 
     def one(x0, mode0, args):
         def body(c):
@@ -109,8 +95,60 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
             t, y, mode, i, times, _ = lax.while_loop(cond, body, init)
         return times, i, y, mode
 
-    del n
     return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+
+
+def _epoch_parts(system):
+    """The lock-step loops' vector field over modes and their Event (each transition's guard,
+    held positive outside its source mode and where it is not moving into {g <= 0})."""
+    sources = jnp.asarray(system.sources)
+
+    def flow(t, y, a):
+        mode, args = a
+        return lax.switch(mode, [lambda t, y, m=m: m.flow(t, y, args) for m in system.modes], t, y)
+
+    def cond_fn(k):
+        tr = system.transitions[k]
+
+        def fn(t, y, args, **kwargs):
+            mode, args = args
+            g, gdot = jax.jvp(lambda t, y: tr.guard(t, y, args), (t, y), (jnp.ones_like(t), flow(t, y, (mode, args))))
+            return jnp.where((sources[k] == mode) & (gdot < 0), g, jnp.abs(g) + 1.0)
+
+        return fn
+
+    K = system.num_transitions
+    event = diffrax.Event([cond_fn(k) for k in range(K)], root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
+    return diffrax.ODETerm(flow), event
+
+
+def diffrax_epoch_scan(system, *, solver, controller, t1, max_epochs=64, max_steps=4096, adjoint=None):
+    """One execution, `(x0, mode0, args) -> final_state`, as a `lax.scan` over `max_epochs`
+    epochs of `diffeqsolve` + `Event` (epochs after the run has ended integrate nothing)."""
+    K = system.num_transitions
+    targets = jnp.asarray(system.targets)
+    term, event = _epoch_parts(system)
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+
+    def one(x0, mode0, args):
+        def epoch(c, _):
+            t, y, mode, done = c
+            sol = diffrax.diffeqsolve(term, solver, t, t1, None, y, (mode, args), stepsize_controller=controller,
+                                      event=event, max_steps=max_steps, saveat=diffrax.SaveAt(t1=True),
+                                      throw=False, adjoint=adjoint)
+            mask = jnp.stack(sol.event_mask) if K > 1 else jnp.atleast_1d(sol.event_mask[0])
+            fired = jnp.any(mask) & (sol.result == diffrax.RESULTS.event_occurred) & ~done
+            k = jnp.argmax(mask)
+            te, ye = sol.ts[-1], sol.ys[-1]
+            y_new = lax.switch(k, [lambda t, y, tr=tr: tr.reset(t, y, args) for tr in system.transitions], te, ye)
+            y_out = jnp.where(done, y, jnp.where(fired, y_new, ye))
+            return (jnp.where(done, t, te), y_out, jnp.where(fired, targets[k], mode), done | ~fired), None
+
+        init = (jnp.zeros((), x0.dtype), x0, jnp.asarray(mode0), jnp.array(False))
+        (_, y, _, _), _ = lax.scan(epoch, init, None, length=max_epochs)
+        return y
+
+    return one
 
 
 def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):

@@ -14,6 +14,8 @@ process (this script re-runs itself with `--one SYSTEM CALL [--cache DIR]`), whi
 `import jax`, `import hybridjax`, tracing (`fn.trace`), lowering (`.lower()`), XLA compilation
 (`.compile()`), the first run, and the time from the process's first line to the first result
 (wall time, and the process's CPU time beside it: the machine may be shared);
+the same call on the plain diffrax loop (a `lax.scan` over 64 epochs of `diffeqsolve` +
+`diffrax.Event`, `_baselines.diffrax_epoch_scan`), also in a fresh process;
 and records the size of the program (the lowered StableHLO text: bytes, lines, operations; the
 optimised HLO that XLA compiled: instructions). Then the same with JAX's persistent compilation
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
@@ -39,6 +41,10 @@ import tempfile  # noqa: E402
 SYSTEMS = ("ball", "thermostat", "wall", "lif")
 CALLS = ("forward", "reverse", "jvp")
 PROCESSES = ("no cache", "cache: first process", "cache: later process")
+# The same call on the plain diffrax loop (`_baselines.diffrax_epoch_scan`), in a fresh process
+# without cache: what a user would compile without hybridjax. Not for the wall particle, whose
+# modes have different dimensions (one diffeqsolve carries one state shape).
+LOCK = "lock-step loop"
 
 
 def _problem(name: str):
@@ -87,7 +93,7 @@ def _sizes(lowered, compiled) -> dict:
                 hlo_instructions=sum(1 for line in hlo.splitlines() if instr.match(line)))
 
 
-def one(system: str, call: str, cache: str | None) -> dict:
+def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
     t = time.perf_counter()
     import jax
 
@@ -113,6 +119,14 @@ def one(system: str, call: str, cache: str | None) -> dict:
 
     def final(x, a, **kw):
         return hj.simulate(sysm, x, mode0, 0.0, t1, a, **kw).final_state
+
+    if lock:
+        from _baselines import diffrax_epoch_scan
+
+        def final(x, a, adjoint=None):  # noqa: F811
+            run = diffrax_epoch_scan(sysm, solver=diffrax.Tsit5(), controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
+                                     t1=t1, adjoint=adjoint)
+            return run(x, sysm.mode_index(mode0), a)
 
     if call == "forward":
         fn, inputs = jax.jit(final), (x0, args)
@@ -166,8 +180,9 @@ def one(system: str, call: str, cache: str | None) -> dict:
     return res
 
 
-def _run(system: str, call: str, cache: str | None = None) -> dict:
+def _run(system: str, call: str, cache: str | None = None, lock: bool = False) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--one", system, call] + (["--cache", cache] if cache else [])
+    cmd += ["--lock"] if lock else []
     t = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=os.path.dirname(os.path.abspath(__file__)))
     wall = time.perf_counter() - t
@@ -209,6 +224,9 @@ def main():
                 for name in PROCESSES[1:]:
                     rows[name] = _run(system, call, cache)
                     _print_row(system, call, name, rows[name])
+            if system != "wall":
+                rows[LOCK] = _run(system, call, lock=True)
+                _print_row(system, call, LOCK, rows[LOCK])
             payload["rows"].setdefault(system, {})[call] = rows
             path = write_json("first_call", payload)  # after every row: a partial run keeps what it measured
     print("wrote", path)
@@ -218,6 +236,6 @@ if __name__ == "__main__":
     if "--one" in sys.argv:
         i = sys.argv.index("--one")
         cache = sys.argv[sys.argv.index("--cache") + 1] if "--cache" in sys.argv else None
-        print(json.dumps(one(sys.argv[i + 1], sys.argv[i + 2], cache)))
+        print(json.dumps(one(sys.argv[i + 1], sys.argv[i + 2], cache, lock="--lock" in sys.argv)))
     else:
         main()

@@ -511,7 +511,10 @@ def first_call(res: dict) -> list[str]:
                 "compiled (instructions). *error*: against the closed form (derivatives: its central "
                 "differences). The cache rows use JAX's persistent compilation cache in a fresh directory: the "
                 "first process compiles and writes it, a later process reads the compiled program (tracing and "
-                "lowering still run). See the [FAQ](../faq.md#compile-time).")
+                "lowering still run). The *lock-step loop* rows compile the same call on the plain diffrax loop, "
+                "a `lax.scan` over 64 epochs of `diffeqsolve` + `diffrax.Event` (Tsit5, the same tolerances; "
+                "not for the wall particle, whose modes have different dimensions), in a fresh process "
+                "without cache. See the [FAQ](../faq.md#compile-time).")
     names = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle", "lif": "integrate-and-fire"}
     for call in res["calls"]:
         body = []
