@@ -92,14 +92,22 @@ def simulate_batch(
       out of JAX's persistent compilation cache) where either is traced.
     - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
       has a leading axis N (execution i sees `args[i]`).
-    - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
-      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: by the platform of the devices,
-      `"batched"` on CPU where it applies, `"vmap"` on a GPU or TPU).
-      Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
-      controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
+    - `engine`: `hj.BatchedEngine()` (shorthand `"batched"`: this engine; a `ValueError` says
+      why where it does not apply), `hj.VmapEngine()` (`"vmap"`: `jax.vmap(simulate)`, each
+      execution by `VmapEngine.inner`), `hj.AutoEngine()` (`"auto"`, default: by the platform
+      of the devices, its `BatchedEngine` on CPU where it applies, `VmapEngine()` on a GPU or
+      TPU). A per-execution engine (`hj.FastEngine()`, `hj.DiffraxEngine()`, `"fast"`,
+      `"diffrax"`) runs each execution with it under `jax.vmap`. Not on the batched engine:
+      other solvers (e.g. `ReversibleHeun`), other step-size controllers (e.g.
+      `ConstantStepSize`, a `PIDController` with another norm).
+    - `options` and the keyword shorthands: as `simulate`.
     - `saveat`: as `simulate`; the same save times for every execution, but
       `SaveAt(t0=True, t1=True)`, which saves each execution at its own `t0` and `t1`
       (`sol.ts` per execution).
+
+    **Batched-engine shorthands** (the fields of the `BatchedEngine` that `engine="auto"` or
+    `"batched"` uses; with an engine object, set them on its `BatchedEngine`):
+
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
