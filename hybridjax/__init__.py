@@ -13,7 +13,12 @@ from ._analysis.periodic import PeriodicOrbit as PeriodicOrbit
 from ._analysis.periodic import periodic_orbit as periodic_orbit
 from ._analysis.presets import PRESET_NAMES as PRESET_NAMES
 from ._analysis.presets import accuracy_preset as accuracy_preset
+from ._analysis.properties import Achievable as Achievable
+from ._analysis.properties import Chain as Chain
+from ._analysis.properties import Gap as Gap
+from ._analysis.properties import Overlap as Overlap
 from ._analysis.properties import PropertyReport as PropertyReport
+from ._analysis.properties import ResetOutside as ResetOutside
 from ._analysis.properties import check_properties as check_properties
 from ._analysis.saltation import VariationalJacobian as VariationalJacobian
 from ._analysis.saltation import saltation_matrix as saltation_matrix
@@ -53,6 +58,10 @@ from ._optimise.shooting import Shooting as Shooting
 from ._optimise.shooting import ShootingResult as ShootingResult
 from ._optimise.shooting import shoot as shoot
 from ._optimise.shooting import with_running_cost as with_running_cost
+from ._rules.locate import AbstractEventLocator as AbstractEventLocator
+from ._rules.locate import BracketedNewton as BracketedNewton
+from ._rules.options import EventOptions as EventOptions
+from ._rules.options import SolveOptions as SolveOptions
 from ._scenes.scene import Constraint as Constraint
 from ._scenes.scene import ContactSystem as ContactSystem
 from ._scenes.scene import Relabel as Relabel
@@ -60,6 +69,12 @@ from ._scenes.scene import Scene as Scene
 from ._scenes.scene import contact_system as contact_system
 from ._solution.solution import Epoch as Epoch
 from ._solution.solution import Solution as Solution
+from ._solve.engines import AbstractEngine as AbstractEngine
+from ._solve.engines import AutoEngine as AutoEngine
+from ._solve.engines import BatchedEngine as BatchedEngine
+from ._solve.engines import DiffraxEngine as DiffraxEngine
+from ._solve.engines import FastEngine as FastEngine
+from ._solve.engines import VmapEngine as VmapEngine
 from ._solve.simulate import simulate as simulate
 from ._solve.simulate_batch import simulate_batch as simulate_batch
 

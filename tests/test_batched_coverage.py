@@ -258,7 +258,9 @@ def test_implicit_solver_gradient_in_the_batched_engine():
 
 
 def test_auto_engine_is_the_batched_one_on_cpu_only():
-    from hybridjax._solve.simulate_batch import auto_engine
-
-    assert auto_engine("cpu") == "batched"
-    assert auto_engine("gpu") == "vmap" and auto_engine("tpu") == "vmap"
+    auto = hj.AutoEngine(batched=hj.BatchedEngine(lanes=4))
+    assert auto.batch_engine("cpu", None) is auto.batched
+    assert isinstance(auto.batch_engine("gpu", None), hj.VmapEngine)
+    assert isinstance(auto.batch_engine("tpu", None), hj.VmapEngine)
+    # where the batched engine refuses the solver, vmap on every platform
+    assert isinstance(auto.batch_engine("cpu", "solver X is not ..."), hj.VmapEngine)

@@ -181,13 +181,11 @@ def test_engine_choice_errors_and_fallback():
                     stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-8, pcoeff=0.4, icoeff=0.3))
     with pytest.raises(ValueError, match="engine must be"):
         hj.simulate(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
-    from hybridjax._solve.simulate import _choose_engine
-
     # "auto" keeps diffrax's step where the fast one does not apply, and takes it where it does.
     kv, pid = diffrax.Kvaerno5(), diffrax.PIDController(rtol=1e-6, atol=1e-6)
-    s, c = _choose_engine("auto", kv, pid)
+    s, c = hj.AutoEngine().stepper(kv, pid)
     assert s is kv and isinstance(c, FastIController)
-    s, c = _choose_engine("auto", diffrax.Tsit5(), diffrax.ConstantStepSize())
+    s, c = hj.AutoEngine().stepper(diffrax.Tsit5(), diffrax.ConstantStepSize())
     assert isinstance(s, UnrolledERK) and isinstance(c, diffrax.ConstantStepSize)
 
 

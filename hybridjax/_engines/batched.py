@@ -54,13 +54,14 @@ from .._definition.kernels import Kernels, mask_inputs
 from .._rules.detect import dip_filter, dip_interval
 from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
 from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.options import SolveOptions
 from .._rules.records import Detection, EpochStart
 from .._rules.save import saved_in_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
-from .._rules.zeno import ZenoOptions, detect_zeno
+from .._rules.zeno import detect_zeno
 from .._step.runge_kutta import (
     PIDState,
     UnrolledERK,
@@ -204,11 +205,14 @@ class BatchedLoop:
     values go to `LaneRecord.finals`), so that the batch stays full until the queue is empty.
     """
 
-    def __init__(self, system, *, t1, args, args_axis, solver, controller, dt0, max_epochs: int,
-                 max_steps: int, interior_points: int, event_tol, max_zero_epochs: int,
-                 zeno: ZenoOptions | None, loop_kind: str, checkpoints, dtype, lanes: int,
+    def __init__(self, system, *, t1, args, args_axis, solver, controller, options: SolveOptions,
+                 loop_kind: str, checkpoints, dtype, lanes: int,
                  block: int | tuple | None = None, save_ts=None, save_t0: bool = False,
                  save_t1: bool = False, step_ts=None, jump_ts=None):
+        dt0, max_epochs, max_steps, zeno = options.dt0, options.max_epochs, options.max_steps, options.zeno
+        interior_points, event_tol, max_zero_epochs = (options.events.interior_points, options.events.tol,
+                                                       options.max_zero_epochs)
+        self.locator = options.events.locator
         self.num_exec = int(t1.shape[0])
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
@@ -582,9 +586,9 @@ class BatchedLoop:
         def values_at(x):
             return kern.slot_guards(mode, x, interp_sg.evaluate(x), a_sg)
 
-        br = event_brackets(values_at, det, s_ext, tol)
+        br = event_brackets(values_at, det, s_ext, tol, self.locator)
         any_event = jnp.any(br.has)
-        t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next))
+        t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
         ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
         interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)

@@ -55,13 +55,14 @@ from .._definition.kernels import Kernels, mask_inputs
 from .._rules.detect import dip_candidates, dip_filter, first_crossings
 from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
 from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.options import SolveOptions
 from .._rules.records import Detection
 from .._rules.save import saved_in_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
-from .._rules.zeno import ZenoOptions, detect_zeno
+from .._rules.zeno import detect_zeno
 from .._step.runge_kutta import FastIController, UnrolledERK
 from .dense_weights import dense_weights, stage_combination
 
@@ -174,14 +175,8 @@ class Loop:
         args,
         solver,
         controller,
-        dt0,
         save_ts,
-        max_epochs: int,
-        max_steps: int,
-        interior_points: int,
-        event_tol,
-        max_zero_epochs: int,
-        zeno: ZenoOptions | None,
+        options: SolveOptions,
         loop_kind: str,
         checkpoints,
         dtype,
@@ -190,6 +185,10 @@ class Loop:
     ):
         self.kern = Kernels(system, args, dtype)
         self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
+        dt0, max_epochs, max_steps, zeno = options.dt0, options.max_epochs, options.max_steps, options.zeno
+        interior_points, event_tol, max_zero_epochs = (options.events.interior_points, options.events.tol,
+                                                       options.max_zero_epochs)
+        self.locator = options.events.locator
         self.zeno = zeno
         self.recent = (zeno.window + 2) if zeno is not None else 2
         self.system = system
@@ -626,8 +625,8 @@ class Loop:
             return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
 
         det = jtu.tree_map(lambda a: jnp.where(active, a, jnp.zeros_like(a)), st.p_det)
-        br = event_brackets(values_at, det, s_ext, tol)
-        t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next))
+        br = event_brackets(values_at, det, s_ext, tol, self.locator)
+        t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)
         t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp, args)
         t_end = jnp.where(any_event, t_star, sg(t_next))

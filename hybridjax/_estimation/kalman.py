@@ -30,6 +30,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._core.names import one_of
 from .._definition.kernels import dispatch
 from .._definition.system import HybridSystem, Mode, Transition, as_mode_index
 from .._solve.simulate import simulate
@@ -138,7 +139,8 @@ class SaltedKalmanFilter(eqx.Module):
     - `measurement`: `h(t, x, args) -> y` of shape (m,), one callable for every mode or a
       sequence of one per mode (each sees its own mode's state).
     - `update`: `"saltation"` (default) or `"reset"`.
-    - `max_events`: the most transitions in one prediction (`simulate`'s `max_epochs`).
+    - `max_epochs`: the most transitions in one prediction (`simulate`'s `max_epochs`; default
+      16; `max_events` is the same keyword under another name).
     - `solver`, `stepsize_controller`, `max_steps`: passed to `simulate` (the default
       controller is `simulate`'s).
 
@@ -159,7 +161,7 @@ class SaltedKalmanFilter(eqx.Module):
     system: HybridSystem
     measurement: tuple[Callable, ...]
     update: str = eqx.field(static=True)
-    max_events: int = eqx.field(static=True)
+    max_epochs: int = eqx.field(static=True)
     solver: diffrax.AbstractSolver
     stepsize_controller: diffrax.AbstractStepSizeController | None
     max_steps: int = eqx.field(static=True)
@@ -171,10 +173,11 @@ class SaltedKalmanFilter(eqx.Module):
         measurement: Callable | Sequence[Callable],
         *,
         update: str = "saltation",
-        max_events: int = 16,
+        max_epochs: int | None = None,
         solver: diffrax.AbstractSolver = diffrax.Tsit5(),
         stepsize_controller: diffrax.AbstractStepSizeController | None = None,
         max_steps: int = 4096,
+        max_events: int | None = None,
     ):
         if not isinstance(system, HybridSystem):
             raise TypeError(f"SaltedKalmanFilter: system must be a hybridjax.HybridSystem, "
@@ -188,7 +191,8 @@ class SaltedKalmanFilter(eqx.Module):
                              f"({system.num_modes}), got {measurement!r}.")
         if update not in ("saltation", "reset"):
             raise ValueError(f"SaltedKalmanFilter: update must be 'saltation' or 'reset', got {update!r}.")
-        for name, value in (("max_events", max_events), ("max_steps", max_steps)):
+        max_epochs = one_of("SaltedKalmanFilter", max_epochs=max_epochs, max_events=max_events, default=16)
+        for name, value in (("max_epochs", max_epochs), ("max_steps", max_steps)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"SaltedKalmanFilter: {name} must be an int >= 1, got {value!r}.")
         if not isinstance(solver, diffrax.AbstractSolver):
@@ -196,7 +200,7 @@ class SaltedKalmanFilter(eqx.Module):
         self.system = system
         self.measurement = hs
         self.update = update
-        self.max_events = int(max_events)
+        self.max_epochs = int(max_epochs)
         self.solver = solver
         self.stepsize_controller = stepsize_controller
         self.max_steps = int(max_steps)
@@ -208,6 +212,11 @@ class SaltedKalmanFilter(eqx.Module):
         )
 
     # ------------------------------------------------------------------ pieces
+    @property
+    def max_events(self) -> int:
+        """`max_epochs` under its other name."""
+        return self.max_epochs
+
     def _start(self, mode, t, x):
         """The variational state (x, [I 0], t) of `mode`, padded."""
         n, size = self.system.max_dim, self.variational.max_dim
@@ -305,7 +314,7 @@ def _run(kf: SaltedKalmanFilter, x0, P0, ts, ys, Q, R, mode, t0, args) -> Kalman
         tk, yk = inputs
         sol = simulate(kf.variational, kf._start(mode, t, x), mode, t, tk, args,
                        solver=kf.solver, stepsize_controller=kf.stepsize_controller,
-                       max_epochs=kf.max_events, max_steps=kf.max_steps, zeno=False)
+                       max_epochs=kf.max_epochs, max_steps=kf.max_steps, zeno=False)
         mode = sol.final_mode
         x_pred, J = kf._split(mode, sol.final_state)
         mask = kf._mask(mode, dtype)

@@ -29,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._analysis.saltation import saltation_matrix
+from .._core.names import one_of
 from .._definition.system import HybridSystem
 from .._optimise.multiple_shooting import rk4_flow
 from .._solve.simulate import simulate
@@ -53,7 +54,8 @@ class HybridLQRProblem(eqx.Module):
     - `ts` (N + 1,): the time grid.
     - `reference` (N + 1, n): the states r_k to track; `Q`, `R`, `Qf`: the weights.
     - `lower`, `upper`: optional control bounds (the rollout clips to them).
-    - `max_events`: the most events one interval may hold.
+    - `max_epochs`: the most events one interval may hold (`simulate`'s `max_epochs`;
+      `max_events` is the same keyword under another name).
     - `substeps`: RK4 steps per flow segment for the linearisations and extensions.
 
     !!! Example
@@ -76,12 +78,12 @@ class HybridLQRProblem(eqx.Module):
     Qf: Float[Array, "n n"]
     lower: Any = None
     upper: Any = None
-    max_events: int = eqx.field(static=True, default=2)
+    max_epochs: int = eqx.field(static=True, default=2)  # static: a shape and a Python loop bound
     substeps: int = eqx.field(static=True, default=8)
     stepsize_controller: Any = None
 
     def __init__(self, system, control_args, x0, mode0, ts, reference, Q, R, Qf, *, lower=None,
-                 upper=None, max_events=2, substeps=8, stepsize_controller=None):
+                 upper=None, max_epochs=None, substeps=8, stepsize_controller=None, max_events=None):
         dims = {m.dim for m in system.modes}
         if len(dims) != 1:
             raise ValueError("HybridLQRProblem: every mode needs the same state dimension, got "
@@ -99,14 +101,20 @@ class HybridLQRProblem(eqx.Module):
         self.ts, self.reference = ts, reference
         self.Q, self.R, self.Qf = (jnp.atleast_2d(jnp.asarray(w, float)) for w in (Q, R, Qf))
         self.lower, self.upper = lower, upper
-        self.max_events, self.substeps = max_events, substeps
+        self.max_epochs = one_of("HybridLQRProblem", max_epochs=max_epochs, max_events=max_events, default=2)
+        self.substeps = substeps
         self.stepsize_controller = stepsize_controller or diffrax.PIDController(rtol=1e-10, atol=1e-10)
+
+    @property
+    def max_events(self) -> int:
+        """`max_epochs` under its other name."""
+        return self.max_epochs
 
     # ------------------------------------------------------------------ pieces
 
     def interval(self, x, mode, u, t_a, t_b):
         """One interval of the discrete dynamics: the hybrid execution over [t_a, t_b]."""
-        return simulate(self.system, x, mode, t_a, t_b, self.control_args(u), max_epochs=self.max_events,
+        return simulate(self.system, x, mode, t_a, t_b, self.control_args(u), max_epochs=self.max_epochs,
                         stepsize_controller=self.stepsize_controller)
 
     def clip(self, u):
@@ -178,15 +186,15 @@ def _linearise_interval(problem: HybridLQRProblem, roll: _Rollout, k):
     u, t_a, t_b = roll.us[k], problem.ts[k], problem.ts[k + 1]
     A, B = jnp.eye(n), jnp.zeros((n, m))
     x, t = roll.xs[k], t_a
-    for e in range(problem.max_events + 1):
+    for e in range(problem.max_epochs + 1):
         has_event = e < roll.num_events[k]
         active = e <= roll.num_events[k]
-        t_end = jnp.where(has_event, roll.event_times[k, e] if e < problem.max_events else t_b, t_b)
+        t_end = jnp.where(has_event, roll.event_times[k, e] if e < problem.max_epochs else t_b, t_b)
         t_end = jnp.where(active, t_end, t)
         mode = jnp.maximum(roll.event_modes[k, e], 0)
         Phi, Bu = jax.jacfwd(lambda x, u: problem.segment(mode, t, t_end, x, u), argnums=(0, 1))(x, u)
         A, B = Phi @ A, Phi @ B + Bu
-        if e < problem.max_events:
+        if e < problem.max_epochs:
             tr = jnp.maximum(roll.transitions[k, e], 0)
             xb = jnp.where(has_event, roll.before[k, e], x)
             Xi = problem.saltation(tr, t_end, xb, u)
@@ -298,7 +306,7 @@ class HybridILQRResult(eqx.Module):
     - `controls` (N, m), `states` (N + 1, n), `modes` (N + 1,): the last iterate on the grid;
       `cost` its cost.
     - `costs` (iterations + 1,): the cost of each iterate (iterate 0: the initial controls).
-    - `event_times`, `transitions` (iterations + 1, N, max_events): each iterate's events per
+    - `event_times`, `transitions` (iterations + 1, N, max_epochs): each iterate's events per
       interval (`inf`, -1 where none); `num_events` (iterations + 1,) their count.
     - `sequence_changed` (iterations + 1,): whether an iterate's event sequence (the intervals
       its events fall in, and the transitions) differs from the previous iterate's.

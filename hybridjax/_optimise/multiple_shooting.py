@@ -195,9 +195,9 @@ class MultipleShootingCheck(eqx.Module):
     agrees to rounding and the simulation's tolerance.
     """
 
-    residual_tol: float = eqx.field(static=True, default=1e-8)
-    time_rtol: float = eqx.field(static=True, default=1e-6)
-    time_atol: float = eqx.field(static=True, default=1e-9)
+    residual_tol: float = 1e-8
+    time_rtol: float = 1e-6
+    time_atol: float = 1e-9
     solver: diffrax.AbstractSolver = diffrax.Tsit5()
     stepsize_controller: diffrax.AbstractStepSizeController = diffrax.PIDController(rtol=1e-10, atol=1e-10)
     max_steps: int = eqx.field(static=True, default=4096)

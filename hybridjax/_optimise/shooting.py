@@ -22,6 +22,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
+from .._core.names import one_of
 from .._definition.system import HybridSystem, Mode, Transition
 from .._solution.solution import Solution
 from .._solve.simulate import simulate
@@ -66,7 +67,7 @@ class Shooting(eqx.Module):
             args={"g": 9.8, "e": 0.5},
             cost=lambda v, sol: (sol.event_times[1] - 2.0) ** 2,   # second impact at t = 2
             max_epochs=2)
-        result = hj.shoot(problem, jnp.asarray(6.0), optax.adam(0.1), steps=200)
+        result = hj.shoot(problem, jnp.asarray(6.0), optax.adam(0.1), iterations=200)
         ```
     """
 
@@ -156,13 +157,13 @@ class ShootingResult(eqx.Module):
     parameters after step i (the previous ones again when a step was refused).
 
     - `params`, `cost`: the last iterate and its cost.
-    - `costs` (steps + 1,), `params_history` (the parameters' pytree with a leading
-      steps + 1 axis): every iterate.
-    - `num_events`, `transitions` (steps + 1, max_epochs): each iterate's event sequence
+    - `costs` (iterations + 1,), `params_history` (the parameters' pytree with a leading
+      iterations + 1 axis): every iterate.
+    - `num_events`, `transitions` (iterations + 1, max_epochs): each iterate's event sequence
       (transition indices, -1 past `num_events`); `status`: each iterate's `hj.Status` code.
-    - `sequence_changed` (steps + 1,): whether the iterate's event sequence differs from the
+    - `sequence_changed` (iterations + 1,): whether the iterate's event sequence differs from the
       previous iterate's, where the cost's gradient may jump.
-    - `accepted` (steps + 1,): whether the step was taken (its execution finite and
+    - `accepted` (iterations + 1,): whether the step was taken (its execution finite and
       admissible); `backtracks`: how many halvings it needed.
     """
 
@@ -260,15 +261,18 @@ def shoot(
     params0: PyTree[ArrayLike],
     optimiser: optax.GradientTransformation,
     *,
-    steps: int,
+    iterations: int | None = None,
     batched: bool = False,
+    steps: int | None = None,
 ) -> ShootingResult:
-    r"""Minimise `problem`'s cost from `params0` with `steps` updates of an optax `optimiser`.
+    r"""Minimise `problem`'s cost from `params0` with `iterations` updates of an optax `optimiser`
+    (`steps` is the same keyword under another name; `hybrid_ilqr` counts its iterations as
+    `iterations` too, and `max_steps` everywhere counts a solver's steps).
 
     Each step: $g = \nabla_\theta J(\theta_i)$ through `simulate`; the optimiser's update
     $\theta' = \Pi(\theta_i + u(g))$ projected onto the bounds; the step halved,
     $\theta_i + 2^{-j} (\theta' - \theta_i)$, while the execution is non-finite or takes other
-    transitions than `problem.transitions` requires. One compiled program runs all steps
+    transitions than `problem.transitions` requires. One compiled program runs all iterations
     (`jax.lax.scan`). With `batched=True`, `params0` has a leading axis of initial guesses,
     solved together (`jax.vmap`).
 
@@ -278,13 +282,14 @@ def shoot(
     !!! Example
 
         ```python
-        result = hj.shoot(problem, jnp.array([5.0, 6.0, 7.0]), optax.adam(0.1), steps=200,
+        result = hj.shoot(problem, jnp.array([5.0, 6.0, 7.0]), optax.adam(0.1), iterations=200,
                           batched=True)
         result.params, result.costs[:, -1], result.changes   # per guess
         ```
     """
+    steps = one_of("shoot", iterations=iterations, steps=steps, default=None)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
-        raise ValueError(f"shoot: steps must be an int >= 0, got {steps!r}.")
+        raise ValueError(f"shoot: iterations must be an int >= 0, got {steps!r}.")
     if not isinstance(optimiser, optax.GradientTransformation):
         raise TypeError(f"shoot: optimiser must be an optax.GradientTransformation, got {optimiser!r}.")
     optimiser = optax.with_extra_args_support(optimiser)

@@ -1,6 +1,12 @@
-"""Location of an event: the root and minimum searches on the interpolant, the brackets, the
-simultaneity rule, the first event and the implicit-function event point."""
+"""Location of an event: the root and minimum searches on the interpolant (an event locator), the
+brackets, the simultaneity rule, the first event and the implicit-function event point.
 
+The searches are the extension point: `AbstractEventLocator` declares them, `BracketedNewton`
+(the default) implements them; `event_brackets` and `first_event` take the locator to use, and
+both engines hand them the one of the call's `EventOptions`.
+"""
+
+import abc
 import functools
 from collections.abc import Callable
 
@@ -131,9 +137,66 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
     return x_best, f_best
 
 
-def event_brackets(values_at: Callable, det: Detection, s_ext, tol) -> Brackets:
+class AbstractEventLocator(eqx.Module):
+    r"""How an event is located on a step's dense output: the two searches the engines call.
+
+    Subclass it and implement both methods to add a strategy (Illinois, Brent, ...); pass an
+    instance as `hj.EventOptions(locator=...)`. Each method sees one watched function `f` of the
+    time on the step's interpolant (a guard, or a domain component), traced inside the loop: use
+    JAX control flow (`lax.while_loop`), and return arrays of `a`'s dtype. The event time's
+    derivative is taken by the implicit function theorem after the search, so a locator needs no
+    gradient of its own (its inputs arrive with `lax.stop_gradient`).
+    """
+
+    @abc.abstractmethod
+    def root(self, f: Callable, a, b, tol):
+        """A point x in (a, b] with f(x) <= 0 and x - r <= tol, r the first root of f in the
+        bracket [a, b] with f(a) > 0 >= f(b): the right end of a bracket narrower than `tol`,
+        so that the pre-event state lies in the guard set."""
+
+    @abc.abstractmethod
+    def minimum(self, f: Callable, a, b, x0, tol):
+        """`(x, f(x))` at the lowest point found of f on [a, b] (f' < 0 at a, > 0 at b), starting
+        from `x0`; it may stop at the first x with f(x) < 0 (a crossing proven), or when the
+        bracket is narrower than `tol`. A dip below zero that this misses is not an event."""
+
+
+class BracketedNewton(AbstractEventLocator):
+    r"""The default locator: Newton's method kept inside a shrinking bracket.
+
+    `root`: Newton with the derivative of f by forward-mode AD, from the regula-falsi point,
+    bisecting where a Newton step leaves the bracket or does not halve the step before last
+    (Numerical Recipes' `rtsafe`; W. H. Press et al., *Numerical Recipes*, 3rd ed., Sec. 9.4),
+    each iterate followed by a probe towards the root so that the bracket closes once Newton
+    converges, then one Newton step from the right end put a few ulps past the root
+    (`locate_root`). `minimum`: Newton on f' (f'' by nested forward-mode AD) inside the
+    bracket of f' changing sign, stopping at the first f < 0 (`locate_minimum`).
+    `max_iter` and `max_iter_minimum` bound the iterations of each.
+    """
+
+    max_iter: int = 64
+    max_iter_minimum: int = 32
+
+    def __check_init__(self):
+        for name in ("max_iter", "max_iter_minimum"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"BracketedNewton: {name} must be an int >= 1, got {v!r}.")
+
+    def root(self, f, a, b, tol):
+        return locate_root(f, a, b, tol, self.max_iter)
+
+    def minimum(self, f, a, b, x0, tol):
+        return locate_minimum(f, a, b, x0, tol, self.max_iter_minimum)
+
+
+DEFAULT_LOCATOR = BracketedNewton()
+
+
+def event_brackets(values_at: Callable, det: Detection, s_ext, tol,
+                   locator: AbstractEventLocator = DEFAULT_LOCATOR) -> Brackets:
     """Per watched function, a bracket of its first event in the step: of a dip where the
-    minimum search on a dip candidate (`locate_minimum`, run only when some execution has a
+    minimum search on a dip candidate (`locator.minimum`, run only when some execution has a
     candidate) finds g < 0 (from the interval's start to that point), else of the first
     crossing (samples j - 1 to j).
 
@@ -145,7 +208,7 @@ def event_brackets(values_at: Callable, det: Detection, s_ext, tol) -> Brackets:
 
     def refine(_):
         def lowest(k, a_k, b_k, x_k):
-            return locate_minimum(lambda x: values_at(x)[k], a_k, b_k, x_k, tol)
+            return locator.minimum(lambda x: values_at(x)[k], a_k, b_k, x_k, tol)
 
         return jax.vmap(lowest)(jnp.arange(has.shape[0]), s_ext[i_d], s_ext[i_d + 1], x0_d)
 
@@ -183,8 +246,9 @@ def resolve_simultaneous(reached, num_counted: int | None = None):
     return jnp.argmax(reached).astype(jnp.int32), jnp.sum(counted) > 1
 
 
-def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
-    """The step's first event: each bracketed root located on the dense output (`locate_root`),
+def first_event(values_at: Callable, br: Brackets, tol, t_end,
+                locator: AbstractEventLocator = DEFAULT_LOCATOR) -> EventChoice:
+    """The step's first event: each bracketed root located on the dense output (`locator.root`),
     the earliest time t_min, and of the watched functions reached then (`simultaneous_set`) the
     first in listing order. Located only when some execution has an event in the step (under
     `jax.vmap`, `eqxi.unvmap_any`); none: `t_end`, index 0.
@@ -194,7 +258,7 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end) -> EventChoice:
 
     def locate(_):
         def root(k, a_k, b_k):
-            return locate_root(lambda x: values_at(x)[k], a_k, b_k, tol)
+            return locator.root(lambda x: values_at(x)[k], a_k, b_k, tol)
 
         tk = jax.vmap(root)(jnp.arange(has.shape[0]), a, b)
         tk = jnp.where(has, tk, jnp.inf)

@@ -38,9 +38,9 @@ class ZenoOptions(eqx.Module):
         ```
     """
 
-    window: int = eqx.field(static=True, default=DEFAULT_WINDOW)
-    ratio_tol: float = eqx.field(static=True, default=DEFAULT_RATIO_TOL)
-    max_ratio: float = eqx.field(static=True, default=DEFAULT_MAX_RATIO)
+    window: int = eqx.field(static=True, default=DEFAULT_WINDOW)  # static: the event times kept (a shape)
+    ratio_tol: float = DEFAULT_RATIO_TOL
+    max_ratio: float = DEFAULT_MAX_RATIO
 
     def __check_init__(self):
         if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:

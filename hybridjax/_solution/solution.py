@@ -16,8 +16,20 @@ from .._definition.system import HybridSystem
 from . import dense as _dense
 
 
-def _solve_options(dtype, solver, stepsize_controller):
-    """`evaluate`'s defaults: Tsit5, rtol = atol = 1e-10 (float64) or 1e-6 (float32)."""
+def stepping(solver, stepsize_controller) -> dict:
+    """The `Solution` fields that hold a run's solver and controller (`Solution.solver`)."""
+    arrays, static = eqx.partition((solver, stepsize_controller), eqx.is_array)
+    return dict(stepping_arrays=arrays, stepping_static=static)
+
+
+def _solve_options(dtype, solver, stepsize_controller, run=None):
+    """`evaluate`'s solver and controller: those given; with neither given, the run's (`run`, a
+    `Solution`) where its controller is adaptive; else (a constant step, whose size is the
+    run's own, or one of the two given) Tsit5 and rtol = atol = 1e-10 (float64) or 1e-6
+    (float32) for the one not given."""
+    own = run is not None and solver is None and stepsize_controller is None
+    if own and isinstance(run.stepsize_controller, diffrax.AbstractAdaptiveStepSizeController):
+        solver, stepsize_controller = run.solver, run.stepsize_controller
     solver = diffrax.Tsit5() if solver is None else solver
     if stepsize_controller is None:
         tol = 1e-10 if dtype == jnp.float64 else 1e-6
@@ -108,6 +120,23 @@ class Solution(eqx.Module):
     mode0: Int[Array, "*batch"]
     args: Any
     system: HybridSystem = eqx.field(static=True)
+    # The run's solver and step-size controller (`evaluate` integrates with them), split as
+    # `eqx.partition` splits them: their arrays here (batched like the other fields), the rest
+    # static (a solver's settings, a controller's Python-number tolerances and norm function).
+    stepping_arrays: Any = None
+    stepping_static: Any = eqx.field(static=True, default=None)
+
+    @property
+    def solver(self) -> diffrax.AbstractSolver | None:
+        """The diffrax solver of the run (None where the solution was built without one)."""
+        return None if self.stepping_static is None else eqx.combine(self.stepping_arrays,
+                                                                     self.stepping_static)[0]
+
+    @property
+    def stepsize_controller(self) -> diffrax.AbstractStepSizeController | None:
+        """The run's step-size controller, its default filled in (None where not recorded)."""
+        return None if self.stepping_static is None else eqx.combine(self.stepping_arrays,
+                                                                     self.stepping_static)[1]
 
     # ------------------------------------------------------------------ reading
     @property
@@ -161,7 +190,11 @@ class Solution(eqx.Module):
         Finds the epoch containing t (right-continuous: at an event time the post-event
         state x(t_i^+) of the last transition at that instant, unlike `saveat`, which keeps the
         pre-event state), and integrates that epoch's flow from its initial state x(t_i^+) to t
-        with diffrax (default Tsit5, rtol = atol = 1e-10). Times outside [t0, final_time], and
+        with diffrax: with the run's own solver and step-size controller (`sol.solver`,
+        `sol.stepsize_controller`), so to the run's tolerance; with `solver` /
+        `stepsize_controller` where given, or where the run's controller has no error estimate
+        (a constant step): the one not given Tsit5, rtol = atol = 1e-10 (float64) or 1e-6
+        (float32). Times outside [t0, final_time], and
         times inside the accumulating tail of a completed Zeno execution (the epoch that ends
         in a `ZenoCompletion` jump, which stands for infinitely many unsimulated bounces),
         return `inf` and mode -1. Differentiable (in `t` too).
@@ -184,7 +217,7 @@ class Solution(eqx.Module):
         if np.ndim(t) == 1:
             if _dense.is_concrete(t, self):
                 solver, stepsize_controller = _solve_options(self.final_time.dtype, solver,
-                                                             stepsize_controller)
+                                                             stepsize_controller, self)
                 return _dense.evaluate_many(self, t, solver, stepsize_controller)
             one = lambda s: self.evaluate(s, solver=solver,  # noqa: E731
                                           stepsize_controller=stepsize_controller)
@@ -200,7 +233,7 @@ class Solution(eqx.Module):
         mode = self.epoch_modes[i]
         kern = Kernels(self.system, self.args, start_x.dtype)
         term = diffrax.ODETerm(lambda tt, y, a: kern.flow(mode, tt, y, a))
-        solver, stepsize_controller = _solve_options(start_x.dtype, solver, stepsize_controller)
+        solver, stepsize_controller = _solve_options(start_x.dtype, solver, stepsize_controller, self)
         # The epoch that ends in a Zeno completion stands for infinitely many epochs that were
         # not simulated (the accumulating tail); re-integrating its flow would not be the execution.
         tail = (i < self.num_events) & (self.transitions[i] >= self.system.num_transitions)

@@ -1,219 +1,22 @@
 """`simulate`: run one execution of a hybrid system (vmap it for many)."""
 
-import warnings
 from typing import Any
 
 import diffrax
-import equinox as eqx
-import jax
 import jax.numpy as jnp
-import numpy as np
-from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fill implicit tols
-from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 from jaxtyping import ArrayLike, Float, Int
 
 from .._core.status import Status
-from .._core.transforms import (
-    adjoint_for,
-    derivative_modes,
-    naming_the_forward_mode_fix,
-    warn_if_forward_mode_beneath,
-)
+from .._core.transforms import naming_the_forward_mode_fix
 from .._definition.system import HybridSystem, as_mode_index
 from .._definition.validation import as_state_array, check_time_span
 from .._engines.loop import Loop
-from .._rules.zeno import ZenoOptions, zeno_options
-from .._solution.solution import Solution
-from .._solve.eager import compiled_when_eager
-from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, can_use_fast_controller, split_clip
-
-
-def _loop_kind(adjoint) -> tuple[str, int | None]:
-    if isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
-        return "checkpointed", adjoint.checkpoints
-    if isinstance(adjoint, diffrax.ForwardMode):
-        return "lax", None
-    if isinstance(adjoint, diffrax.DirectAdjoint):
-        return "bounded", None
-    raise TypeError(
-        f"adjoint={adjoint!r} is not supported: use diffrax.RecursiveCheckpointAdjoint() "
-        "(reverse mode, the default), diffrax.ForwardMode() (forward mode: jax.jvp, "
-        "jax.jacfwd) or diffrax.DirectAdjoint() (both, at a higher cost)."
-    )
-
-
-def _save_times(saveat, t0, t1, dtype) -> jax.Array:
-    if saveat is None:
-        return jnp.zeros((0,), dtype)
-    if isinstance(saveat, diffrax.SaveAt):
-        sub = saveat.subs
-        if not isinstance(sub, diffrax.SubSaveAt) or sub.steps or sub.fn is not _save_y:
-            raise ValueError("saveat: only diffrax.SaveAt(t0=..., t1=..., ts=...) is supported.")
-        parts = []
-        if sub.t0:
-            parts.append(jnp.reshape(t0, (1,)))
-        if sub.ts is not None:
-            parts.append(jnp.asarray(sub.ts, dtype).reshape(-1))
-        if sub.t1:
-            parts.append(jnp.reshape(t1, (1,)))
-        return jnp.concatenate(parts).astype(dtype) if parts else jnp.zeros((0,), dtype)
-    ts = jnp.asarray(saveat, dtype)
-    if ts.ndim != 1:
-        raise ValueError(f"saveat: expected a 1-D array of times, got shape {ts.shape}.")
-    return ts
-
-
-def _prepare_solver(solver, controller, kind: str):
-    """What `diffrax.diffeqsolve` does to a solver before stepping it, done here as well.
-
-    - the RK stage loop must not be a custom_vjp under forward mode (as diffrax's
-      `ForwardMode`/`DirectAdjoint` do);
-    - an implicit solver's root finder takes the controller's rtol/atol/norm where it was
-      left at diffrax's `use_stepsize_tol`.
-    """
-    if (
-        kind != "checkpointed"
-        and isinstance(solver, diffrax.AbstractRungeKutta)
-        and solver.scan_kind is None
-    ):
-        solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
-    if isinstance(solver, diffrax.AbstractImplicitSolver):
-        attrs = [a for a in ("rtol", "atol", "norm")
-                 if getattr(solver.root_finder, a) is use_stepsize_tol]
-        if attrs:
-            if not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-                raise ValueError(
-                    f"{type(solver).__name__} with a fixed step size needs explicit root-finder "
-                    "tolerances, e.g. root_finder=diffrax.VeryChord(rtol=..., atol=..., "
-                    "norm=optimistix.max_norm); or use an adaptive controller."
-                )
-            solver = eqx.tree_at(
-                lambda s: tuple(getattr(s.root_finder, a) for a in attrs),
-                solver,
-                tuple(getattr(controller, a) for a in attrs),
-            )
-    return solver
-
-
-def _choose_engine(engine: str, solver, controller):
-    """The solver and controller the loop steps with (see `simulate`'s `engine`)."""
-    if engine not in ("auto", "fast", "diffrax"):
-        raise ValueError(f"engine must be 'auto', 'fast' or 'diffrax', got {engine!r}.")
-    if engine == "diffrax":
-        return solver, controller
-    fast_solver, fast_controller = can_unroll(solver), can_use_fast_controller(controller)
-    if engine == "fast" and not (fast_solver and fast_controller):
-        why = (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, "
-               "Bosh3, Tsit5, Dopri5, Dopri8" if not fast_solver else
-               f"stepsize_controller {controller!r} is not a PIDController with default "
-               "coefficients (pcoeff=0, icoeff=1, dcoeff=0), rms norm and no dtmin, dtmax")
-        raise ValueError(f"engine='fast': {why}; use engine='diffrax' (or 'auto').")
-    if fast_solver:
-        solver = UnrolledERK(solver)
-    if fast_controller:
-        controller = FastIController(controller)
-    return solver, controller
-
-
-def _default_controller(dtype) -> diffrax.PIDController:
-    tol = 1e-8 if dtype == jnp.float64 else 1e-5
-    return diffrax.PIDController(rtol=tol, atol=tol)
-
-
-def _warn_unreachable_tolerance(controller, dtype) -> None:
-    """Warn when rtol is below what `dtype` resolves: steps then shrink to rounding level,
-    so the run costs many more steps (or ends with MAX_STEPS) without gaining accuracy."""
-    rtol = getattr(controller, "rtol", None)
-    if rtol is None:
-        return
-    try:
-        rtol = float(np.min(np.asarray(rtol)))
-    except jax.errors.TracerArrayConversionError:  # traced tolerances: nothing to check
-        return
-    floor = 8 * float(jnp.finfo(dtype).eps)
-    if rtol < floor:
-        warnings.warn(
-            f"rtol={rtol:g} is below what {jnp.dtype(dtype).name} resolves "
-            f"(8 eps = {floor:.1e}); the solver cannot honour it. Use rtol >= {floor:.0e}, "
-            "or float64 (jax.config.update('jax_enable_x64', True) and float64 x0).",
-            stacklevel=4,
-        )
-
-
-def _initial_state(system: HybridSystem, x0, mode0, dtype) -> jax.Array:
-    x0 = jnp.asarray(x0, dtype)
-    n = system.max_dim
-    if x0.ndim != 1:
-        raise ValueError(f"x0 must be a 1-D state vector, got shape {x0.shape}.")
-    m = x0.shape[0]
-    if isinstance(mode0, (str, int, np.integer)):
-        mode = system.modes[system.mode_index(mode0)]
-        if m not in (mode.dim, n):
-            raise ValueError(
-                f"x0 has {m} components but mode '{mode.name}' has dim {mode.dim}"
-                + (f" (padded state: {n})." if n != mode.dim else ".")
-            )
-    elif m != n:
-        raise ValueError(
-            f"x0 has {m} components; with a traced mode0 pass the padded state of "
-            f"length {n} (the largest mode dimension)."
-        )
-    return x0 if m == n else jnp.concatenate([x0, jnp.zeros((n - m,), dtype)])
-
-
-def float_type(x0_dtype):
-    """The solution's dtype: x0's float type (at least float32); for an integer or boolean x0,
-    the default float type (float64 with `jax_enable_x64`)."""
-    if jnp.issubdtype(x0_dtype, jnp.integer) or jnp.issubdtype(x0_dtype, jnp.bool_):
-        return jnp.result_type(float)
-    return jnp.result_type(x0_dtype, jnp.float32)
-
-
-def promote_args(args, dtype):
-    """`args` with its integer array leaves (NumPy or JAX) converted to `dtype`, so that the
-    flows, guards and resets compute in the solution's float type. Booleans, floats and Python
-    numbers (weakly typed: they take the type of the state they meet) are left as given."""
-    def promote(leaf):
-        if eqx.is_array(leaf) and jnp.issubdtype(leaf.dtype, jnp.integer):
-            return jnp.asarray(leaf, dtype)
-        return leaf
-
-    return jax.tree_util.tree_map(promote, args)
-
-
-def _checked_options(system, x0_arr, args, *, solver, stepsize_controller, dt0, max_epochs,
-                     max_steps, event_tol, interior_points, max_zero_epochs, zeno_window,
-                     zeno_max_ratio, adjoint):
-    """Validate `simulate`'s options; returns (dtype, loop kind, checkpoints, solver,
-    controller, event_tol) with the defaults filled in (`args` of one execution)."""
-    if not isinstance(system, HybridSystem):
-        raise TypeError(f"system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
-    for name, value, low in (
-        ("max_epochs", max_epochs, 1),
-        ("max_steps", max_steps, 1),
-        ("interior_points", interior_points, 0),
-        ("max_zero_epochs", max_zero_epochs, 0),
-        ("zeno_window", zeno_window, 1),
-    ):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-            raise ValueError(f"{name} must be an int >= {low}, got {value!r}.")
-    dtype = float_type(x0_arr.dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")
-    system.check(promote_args(args, dtype), dtype)
-    adjoint = adjoint_for(adjoint, derivative_modes())
-    warn_if_forward_mode_beneath(adjoint, "A hybridjax simulation")
-    kind, checkpoints = _loop_kind(adjoint)
-    controller = _default_controller(dtype) if stepsize_controller is None else stepsize_controller
-    solver = _prepare_solver(solver, controller, kind)
-    if dt0 is None and not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
-        raise ValueError(f"{type(controller).__name__} needs dt0 (no error estimate to pick one).")
-    if not 0 < zeno_max_ratio < 1:
-        raise ValueError(f"zeno_max_ratio must be in (0, 1), got {zeno_max_ratio!r}.")
-    if event_tol is None:
-        event_tol = 1e-12 if dtype == jnp.float64 else 1e-6
-    _warn_unreachable_tolerance(controller, dtype)
-    return dtype, kind, checkpoints, solver, controller, event_tol
+from .._rules.options import SolveOptions
+from .._solution.solution import Solution, stepping
+from .._step.runge_kutta import split_clip
+from .eager import compiled_when_eager
+from .engines import AbstractEngine, as_engine, step_engine
+from .prepare import initial_state, prepare, promote_args, save_times, solve_options
 
 
 @compiled_when_eager(check_time_span)
@@ -228,19 +31,10 @@ def simulate(
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     saveat: diffrax.SaveAt | Float[ArrayLike, " saves"] | None = None,
-    dt0: float | None = None,
-    max_epochs: int = 64,
-    max_steps: int = 4096,
-    event_tol: float | None = None,
-    interior_points: int = 4,
-    max_zero_epochs: int = 16,
-    zeno: bool | ZenoOptions = True,
-    zeno_window: int = 3,
-    zeno_ratio_tol: float = 0.05,
-    zeno_max_ratio: float = 0.99,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
-    engine: str = "auto",
-    throw: bool = False,
+    engine: AbstractEngine | str = "auto",
+    options: SolveOptions | None = None,
+    **shorthands,
 ) -> Solution:
     r"""Simulate one execution of `system` from `(x0, mode0)` at `t0` until `t1` or a stop.
 
@@ -290,39 +84,47 @@ def simulate(
       evaluated anew.
     - `saveat`: times to save the state at: a 1-D array or `diffrax.SaveAt(ts=..., t0=...,
       t1=...)`.
-    - `dt0`: first step size of every epoch; default: from the tolerances (Hairer's rule) for
-      the first epoch and, with an explicit Runge-Kutta solver, the step-size controller's
-      last proposal for the later ones (implicit solvers: Hairer's rule for every epoch);
-      capped so that a departing guard is seen positive before it can return.
-    - `max_epochs`: the most transitions recorded; one more ends with `MAX_EPOCHS`.
-    - `max_steps`: the most solver steps (accepted and rejected, all epochs together);
-      more ends with `MAX_STEPS`.
-    - `event_tol`: event-time tolerance relative to the step in which the event lies
-      (floored at 8 ulp of t): the root bracket is narrowed below `event_tol * h`.
-      Default 1e-12 (float64), 1e-6 (float32).
-    - `interior_points`: guards are also checked at this many interior points of each step's
-      dense output, to catch a guard entered and left within one step; between samples, a
-      local minimum of a guard that may reach zero is searched for on the dense output, so
-      near-grazing crossings (down to rounding level) are found too.
-    - `max_zero_epochs`: more zero-length epochs in a row end with `CHATTERING`.
-    - `zeno`, `zeno_window`, `zeno_ratio_tol`, `zeno_max_ratio`: Zeno detection (`zeno` may
-      also be a `ZenoOptions`, which holds the other three; `zeno=False` switches it off). After each
-      event, if the last `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch
-      lengths lie in (0, zeno_max_ratio] and agree with the latest to `zeno_ratio_tol`
-      (relative), and the extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is
-      <= t1, the execution stops with `ZENO` (`sol.zeno_time`, `sol.zeno_state`), or jumps to
-      the limit through the mode's `ZenoCompletion` and continues.
     - `adjoint`: `diffrax.RecursiveCheckpointAdjoint()` (reverse mode; replaced by
       `ForwardMode()` under `jax.jvp`/`jax.jacfwd` alone), `ForwardMode()` (forward mode) or
       `DirectAdjoint()` (both): selects the kind of while loop.
-    - `engine`: how each step is computed. `"diffrax"`: diffrax's own `solver.step` and
-      `stepsize_controller.adapt_step_size`. `"fast"`: the same step from the solver's Butcher
-      tableau with the stages unrolled, and the same I-controller rule written out (requires
-      one of Heun, Midpoint, Ralston, Bosh3, Tsit5, Dopri5, Dopri8 and a
-      `PIDController` with default coefficients and no dtmin/dtmax); the
-      same steps to rounding, faster under `vmap` (the docs' Work-precision page).
-      `"auto"` (default): `"fast"` where it applies, `"diffrax"` otherwise.
-    - `throw`: raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
+    - `engine`: how each step is computed: `hj.AutoEngine()` (default, shorthand `"auto"`):
+      `hj.FastEngine()` where the solver and controller allow it, `hj.DiffraxEngine()`
+      otherwise. `hj.DiffraxEngine()` (`"diffrax"`): diffrax's own `solver.step` and
+      `stepsize_controller.adapt_step_size`. `hj.FastEngine()` (`"fast"`): the same step
+      from the solver's Butcher tableau with the stages unrolled, and the same I-controller
+      rule written out (requires the tableau of Heun, Midpoint, Ralston, Bosh3, Tsit5,
+      Dopri5 or Dopri8, a subclass of one of them included, and a `PIDController` with
+      default coefficients and no dtmin/dtmax); the same steps to rounding, faster under
+      `vmap` (the docs' Work-precision page).
+    - `options`: an `hj.SolveOptions`: the record's length (`max_epochs`), the step budget
+      (`max_steps`), `dt0`, `max_zero_epochs`, event location (`hj.EventOptions`), Zeno
+      detection (`hj.ZenoOptions`) and `throw`. Default: `hj.SolveOptions()`.
+
+    **Keyword shorthands** for the fields of `options` (pass these or `options`, not both):
+
+    - `max_epochs` (64): the most transitions recorded; one more ends with `MAX_EPOCHS`.
+    - `max_steps` (4096): the most solver steps (accepted and rejected, all epochs
+      together); more end with `MAX_STEPS`.
+    - `dt0` (None): first step size of every epoch; default: from the tolerances (Hairer's
+      rule) for the first epoch and, with an explicit Runge-Kutta solver, the step-size
+      controller's last proposal for the later ones (implicit solvers: Hairer's rule for every
+      epoch); capped so that a departing guard is seen positive before it can return.
+    - `event_tol` (None), `interior_points` (4): `EventOptions(tol=..., interior_points=...)`:
+      the event time is located to `event_tol` times the step in which it lies (floored at 8
+      ulp of t; default 1e-12 in float64, 1e-6 in float32); guards are also checked at
+      `interior_points` interior points of each step's dense output, and between samples a
+      local minimum of a guard that may reach zero is searched for, so near-grazing crossings
+      (down to rounding level) are found too.
+    - `max_zero_epochs` (16): more zero-length epochs in a row end with `CHATTERING`.
+    - `zeno` (True), `zeno_window` (3), `zeno_ratio_tol` (0.05), `zeno_max_ratio` (0.99): Zeno
+      detection, `ZenoOptions(window, ratio_tol, max_ratio)` (`zeno` may be a `ZenoOptions`
+      itself; `zeno=False` switches detection off). After each event, if the last
+      `zeno_window` ratios r = |T_{i+1}| / |T_i| of consecutive epoch lengths lie in
+      (0, zeno_max_ratio] and agree with the latest to `zeno_ratio_tol` (relative), and the
+      extrapolated accumulation time t_inf = t_n + |T_n| r / (1 - r) is <= t1, the execution
+      stops with `ZENO` (`sol.zeno_time`, `sol.zeno_state`), or jumps to the limit through the
+      mode's `ZenoCompletion` and continues.
+    - `throw` (False): raise (via `eqx.error_if`) if the status is not `T1_REACHED`.
 
     !!! Example
 
@@ -334,18 +136,17 @@ def simulate(
         sol.event_times[:3]   # impacts at sqrt(2 h0 / g) (1 + 2 e + 2 e^2 + ...)
         ```
     """
+    options = solve_options(options, shorthands, "simulate")
+    stepper = step_engine(as_engine(engine))
     x0_arr = as_state_array(x0, "simulate")
-    dtype, kind, checkpoints, solver, controller, event_tol = _checked_options(
-        system, x0_arr, args, solver=solver, stepsize_controller=stepsize_controller, dt0=dt0,
-        max_epochs=max_epochs, max_steps=max_steps, event_tol=event_tol,
-        interior_points=interior_points, max_zero_epochs=max_zero_epochs, zeno_window=zeno_window,
-        zeno_max_ratio=zeno_max_ratio, adjoint=adjoint)
+    run = prepare(system, x0_arr, args, solver, stepsize_controller, options, adjoint)
+    dtype, options = run.dtype, run.options
     # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
-    controller, step_ts, jump_ts = split_clip(controller, dtype)
-    solver, controller = _choose_engine(engine, solver, controller)
+    controller, step_ts, jump_ts = split_clip(run.controller, dtype)
+    solver, controller = stepper.stepper(run.solver, controller)
     args = promote_args(args, dtype)
 
-    y0 = _initial_state(system, x0_arr, mode0, dtype)
+    y0 = initial_state(system, x0_arr, mode0, dtype)
     m0 = as_mode_index(system, mode0)
     given = (t0, t1)
     t0 = jnp.asarray(t0, dtype)
@@ -357,16 +158,10 @@ def simulate(
         args=args,
         solver=solver,
         controller=controller,
-        dt0=dt0,
-        save_ts=_save_times(saveat, t0, t1, dtype),
-        max_epochs=int(max_epochs),
-        max_steps=int(max_steps),
-        interior_points=int(interior_points),
-        event_tol=event_tol,
-        max_zero_epochs=int(max_zero_epochs),
-        zeno=zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio),
-        loop_kind=kind,
-        checkpoints=checkpoints,
+        save_ts=save_times(saveat, t0, t1, dtype),
+        options=options,
+        loop_kind=run.kind,
+        checkpoints=run.checkpoints,
         dtype=dtype,
         step_ts=step_ts,
         jump_ts=jump_ts,
@@ -375,7 +170,7 @@ def simulate(
         st, rec = loop.run(t0, y0, m0)
     final_time = st.t
     status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, st.status)
-    if throw:
+    if options.throw:
         final_time = status.error_if(final_time, status != Status.T1_REACHED)
     return Solution(
         event_times=rec.event_times,
@@ -403,5 +198,6 @@ def simulate(
         mode0=m0,
         args=args,
         system=system,
+        **stepping(run.solver, run.controller),
     )
 

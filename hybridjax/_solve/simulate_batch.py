@@ -14,25 +14,15 @@ from .._core.status import Status
 from .._core.transforms import compiled_call_modes, naming_the_forward_mode_fix
 from .._definition.system import HybridSystem
 from .._definition.validation import as_state_array, check_time_span
-from .._engines.batched import BatchedLoop, can_map_step
+from .._engines.batched import BatchedLoop
 from .._engines.lanes import as_status
-from .._rules.zeno import ZenoOptions, zeno_options
-from .._solution.solution import Solution
-from .._solve.eager import compiled_when_eager
-from .._solve.simulate import _checked_options, _initial_state, _save_times, promote_args, simulate
-from .._step.runge_kutta import FastIController, UnrolledERK, can_batch_controller, can_unroll, split_clip
-
-
-def batched_engine_refusal(system: HybridSystem, solver, controller) -> str | None:
-    """Why the batched engine cannot run this problem (None when it can)."""
-    if not (can_unroll(solver) or can_map_step(solver)):
-        return (f"solver {type(solver).__name__} is not one of Heun, Midpoint, Ralston, Bosh3, "
-                "Tsit5, Dopri5, Dopri8, ImplicitEuler, Kvaerno3, Kvaerno4, Kvaerno5")
-    if not can_batch_controller(controller):
-        return (f"stepsize_controller {controller!r} is not a PIDController with the rms norm and "
-                "Python-number coefficients (step_ts, jump_ts allowed)")
-    return None
-
+from .._rules.options import SolveOptions
+from .._solution.solution import Solution, stepping
+from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, split_clip
+from .eager import compiled_when_eager
+from .engines import AbstractEngine, AbstractStepEngine, AutoEngine, BatchedEngine, VmapEngine, as_engine
+from .prepare import initial_state, prepare, promote_args, save_times, solve_options
+from .simulate import simulate
 
 _DERIVATIVE_TRACERS = ("JVPTracer", "LinearizeTracer")  # jax.jvp; jax.grad, jax.linearize
 
@@ -60,19 +50,6 @@ def _lanes(x) -> int:
     return int(np.shape(x)[0])
 
 
-def _check_block(block) -> None:
-    def size(b):
-        return isinstance(b, (int, np.integer)) and not isinstance(b, bool) and b >= 1
-
-    if block is None or size(block):
-        return
-    if isinstance(block, tuple) and len(block) == 2 and size(block[0]):
-        if block[1] is None or (size(block[1]) and block[0] < block[1]):
-            return
-    raise ValueError("block must be a positive integer, None (the default), or a tuple (small, large) "
-                     f"of block sizes with small < large (large None: the default); got {block!r}.")
-
-
 @compiled_when_eager(check_time_span)
 def simulate_batch(
     system: HybridSystem,
@@ -86,21 +63,10 @@ def simulate_batch(
     solver: diffrax.AbstractSolver = diffrax.Tsit5(),
     stepsize_controller: diffrax.AbstractStepSizeController | None = None,
     saveat: diffrax.SaveAt | Float[ArrayLike, " saves"] | None = None,
-    dt0: float | None = None,
-    max_epochs: int = 64,
-    max_steps: int = 4096,
-    event_tol: float | None = None,
-    interior_points: int = 4,
-    max_zero_epochs: int = 16,
-    zeno: bool | ZenoOptions = True,
-    zeno_window: int = 3,
-    zeno_ratio_tol: float = 0.05,
-    zeno_max_ratio: float = 0.99,
     adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint(),
-    engine: str = "auto",
-    block: int | tuple[int, int | None] | None = None,
-    lanes: int | None = None,
-    devices: int | list | None = None,
+    engine: AbstractEngine | str = "auto",
+    options: SolveOptions | None = None,
+    **shorthands,
 ) -> Solution:
     r"""Simulate N executions of `system`, one per row of `x0`; a batched `Solution`.
 
@@ -126,14 +92,22 @@ def simulate_batch(
       out of JAX's persistent compilation cache) where either is traced.
     - `args`: a pytree for every flow, guard and reset; with `args_batched=True` each leaf
       has a leading axis N (execution i sees `args[i]`).
-    - `engine`: `"batched"` (this engine; a `ValueError` says why where it does not apply),
-      `"vmap"` (`jax.vmap(simulate)`), `"auto"` (default: by the platform of the devices,
-      `"batched"` on CPU where it applies, `"vmap"` on a GPU or TPU).
-      Not on the batched engine: other solvers (e.g. `ReversibleHeun`), other step-size
-      controllers (e.g. `ConstantStepSize`, a `PIDController` with another norm).
+    - `engine`: `hj.BatchedEngine()` (shorthand `"batched"`: this engine; a `ValueError` says
+      why where it does not apply), `hj.VmapEngine()` (`"vmap"`: `jax.vmap(simulate)`, each
+      execution by `VmapEngine.inner`), `hj.AutoEngine()` (`"auto"`, default: by the platform
+      of the devices, its `BatchedEngine` on CPU where it applies, `VmapEngine()` on a GPU or
+      TPU). A per-execution engine (`hj.FastEngine()`, `hj.DiffraxEngine()`, `"fast"`,
+      `"diffrax"`) runs each execution with it under `jax.vmap`. Not on the batched engine:
+      other solvers (e.g. `ReversibleHeun`), other step-size controllers (e.g.
+      `ConstantStepSize`, a `PIDController` with another norm).
+    - `options` and the keyword shorthands: as `simulate`.
     - `saveat`: as `simulate`; the same save times for every execution, but
       `SaveAt(t0=True, t1=True)`, which saves each execution at its own `t0` and `t1`
       (`sol.ts` per execution).
+
+    **Batched-engine shorthands** (the fields of the `BatchedEngine` that `engine="auto"` or
+    `"batched"` uses; with an engine object, set them on its `BatchedEngine`):
+
     - `block`: how many executions' rare work (epoch start, event location, reset) is done in
       one pass, gathered into a block; passes repeat until every execution that needs the work
       has it (default: all lanes up to 256 of them, else max(64, lanes/32); all lanes when
@@ -184,11 +158,11 @@ def simulate_batch(
         sols.num_events.mean()
         ```
     """
-    if engine not in ("auto", "batched", "vmap"):
-        raise ValueError(f"engine must be 'auto', 'batched' or 'vmap', got {engine!r}.")
-    if lanes is not None and (not isinstance(lanes, (int, np.integer)) or lanes < 1):
-        raise ValueError(f"lanes must be a positive integer (or None: the default), got {lanes!r}.")
-    _check_block(block)
+    batch_settings = {k: shorthands.pop(k) for k in ("block", "lanes", "devices") if k in shorthands}
+    options = solve_options(options, shorthands, "simulate_batch")
+    engine = as_engine(engine, **batch_settings)
+    if isinstance(engine, AbstractStepEngine) and not isinstance(engine, AutoEngine):
+        engine = VmapEngine(engine)  # a per-execution engine: each execution under jax.vmap
     x0_arr = as_state_array(x0, "simulate_batch")
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
@@ -204,39 +178,38 @@ def simulate_batch(
     t1 = jnp.broadcast_to(jnp.asarray(t1), (N,))
     if isinstance(mode0, (str, int, np.integer)):
         mode0 = system.mode_index(mode0) if isinstance(system, HybridSystem) else mode0
-    opts = dict(solver=solver, stepsize_controller=stepsize_controller, dt0=dt0, max_epochs=max_epochs,
-                max_steps=max_steps, event_tol=event_tol, interior_points=interior_points,
-                max_zero_epochs=max_zero_epochs, zeno_window=zeno_window, zeno_max_ratio=zeno_max_ratio,
-                adjoint=adjoint)
-    dtype, kind, checkpoints, solver_p, controller, event_tol_v = _checked_options(
-        system, x0_arr[0], lane_args, **opts)
-    zeno_opts = zeno_options(zeno, zeno_window, zeno_ratio_tol, zeno_max_ratio)
+    run = prepare(system, x0_arr[0], lane_args, solver, stepsize_controller, options, adjoint)
+    dtype, kind, options = run.dtype, run.kind, run.options
     args = promote_args(args, dtype)
     # step_ts / jump_ts: `clip_to_times` in the loop, around the controller they wrap
-    controller, step_ts, jump_ts = split_clip(controller, dtype)
-    refusal = batched_engine_refusal(system, solver_p, controller)
-    if engine == "batched" and refusal is not None:
+    controller, step_ts, jump_ts = split_clip(run.controller, dtype)
+    batched = engine.batched if isinstance(engine, AutoEngine) else engine
+    refusal = batched.refusal(run.solver, controller) if isinstance(batched, BatchedEngine) else None
+    if isinstance(engine, BatchedEngine) and refusal is not None:
         raise ValueError(f"engine='batched': {refusal}; use engine='vmap' (or 'auto').")
     m0 = jnp.broadcast_to(jnp.asarray(mode0, jnp.int32), (N,))
-    available = _devices(devices, N)
-    if engine == "auto":
-        engine = auto_engine(available[0].platform)
-    if engine == "vmap" or refusal is not None:
+    if isinstance(engine, AutoEngine):
+        available = _devices(engine.batched.devices, N)
+        engine = engine.batch_engine(available[0].platform, refusal)
+    if isinstance(engine, VmapEngine):
         def one(x, m, a, s, e):
-            return simulate(system, x, m, s, e, a, saveat=saveat, zeno=zeno,
-                            zeno_ratio_tol=zeno_ratio_tol, engine="auto", **opts)
+            return simulate(system, x, m, s, e, a, solver=solver, stepsize_controller=stepsize_controller,
+                            saveat=saveat, adjoint=adjoint, engine=engine.inner, options=options)
 
         return jax.vmap(one, in_axes=(0, 0, 0 if args_batched else None, 0, 0))(x0_arr, m0, args, t0, t1)
 
+    available = _devices(engine.devices, N)
+    block, lanes = engine.block, engine.lanes
+    max_epochs = options.max_epochs
     n = system.max_dim
     if x0_arr.shape[1] != n:  # `simulate`'s check and padding, row by row
         one_mode = int(mode0) if np.ndim(mode0) == 0 else None  # None: per-execution modes
-        x0_arr = jax.vmap(lambda x: _initial_state(system, x, one_mode, dtype))(x0_arr)
+        x0_arr = jax.vmap(lambda x: initial_state(system, x, one_mode, dtype))(x0_arr)
     y0 = x0_arr.astype(dtype)
     # SaveAt(t0/t1): each execution's own, placeholders here (`BatchedLoop`'s save_t0, save_t1)
     sub = saveat.subs if isinstance(saveat, diffrax.SaveAt) else None
     save_t0, save_t1 = bool(sub is not None and sub.t0), bool(sub is not None and sub.t1)
-    save_ts = _save_times(saveat, jnp.array(-jnp.inf, dtype), jnp.array(jnp.inf, dtype), dtype)
+    save_ts = save_times(saveat, jnp.array(-jnp.inf, dtype), jnp.array(jnp.inf, dtype), dtype)
     t0, t1 = t0.astype(dtype), t1.astype(dtype)
     t1, t1_before_t0 = check_time_span(t0, t1, "simulate_batch", given=(t0_in, t1_in))
     differentiated = kind != "bounded" and carries_derivatives((x0, t0_in, t1_in, args, system))
@@ -258,21 +231,18 @@ def simulate_batch(
         # (benchmarks/gradient_cost.py).
         block = num_lanes
     # Everything the loop reads besides the executions' own rows: passed to each device whole.
-    shared = (system, FastIController(controller), event_tol_v, save_ts, step_ts, jump_ts,
+    shared = (system, FastIController(controller), options, save_ts, step_ts, jump_ts,
               None if args_batched else args)
     shared_arrays, shared_static = eqx.partition(shared, eqx.is_array)
 
     def solve(t0, y0, m0, t1, part_args, shared_arrays):
-        system_, controller_, event_tol_, save_ts_, step_ts_, jump_ts_, args_ = eqx.combine(shared_arrays,
-                                                                                           shared_static)
-        stepper = UnrolledERK(solver_p) if can_unroll(solver_p) else solver_p  # else `mapped_step`
+        system_, controller_, options_, save_ts_, step_ts_, jump_ts_, args_ = eqx.combine(shared_arrays,
+                                                                                         shared_static)
+        stepper = UnrolledERK(run.solver) if can_unroll(run.solver) else run.solver  # else `mapped_step`
         loop = BatchedLoop(
             system_, t1=t1, args=part_args if args_batched else args_, args_axis=0 if args_batched else None,
-            solver=stepper, controller=controller_, dt0=dt0,
-            max_epochs=int(max_epochs), max_steps=int(max_steps), interior_points=int(interior_points),
-            event_tol=event_tol_, max_zero_epochs=int(max_zero_epochs),
-            zeno=zeno_opts,
-            loop_kind=kind, checkpoints=checkpoints, dtype=dtype, lanes=num_lanes, block=block,
+            solver=stepper, controller=controller_, options=options_,
+            loop_kind=kind, checkpoints=run.checkpoints, dtype=dtype, lanes=num_lanes, block=block,
             save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1, step_ts=step_ts_, jump_ts=jump_ts_)
         final, rec = loop.run(t0, y0.T, m0)
         # Executions first, every output: the devices' parts are joined along that axis.
@@ -287,30 +257,24 @@ def simulate_batch(
             out = solve(t0, y0, m0, t1, part_args, shared_arrays)
         else:
             out = _on_devices(solve, devs, N, D * per_device, (t0, y0, m0, t1, part_args), shared_arrays)
+    def per_execution(a):  # an array of the run's solver or controller, batched as the fields are
+        return jnp.broadcast_to(a, (N,) + a.shape) if eqx.is_array(a) else a
+
     batched_args = args if args_batched else jtu.tree_map(
         lambda a: jnp.broadcast_to(jnp.asarray(a), (N,) + np.shape(a)), args)
-    status = jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status"))
+    status = as_status(jnp.where(t1_before_t0, Status.T1_BEFORE_T0._value, out.pop("status")))
+    if options.throw:
+        out["final_time"] = status.error_if(out["final_time"], status != Status.T1_REACHED)
     ts = jnp.broadcast_to(save_ts, (N,) + save_ts.shape)
     if save_t0:
         ts = ts.at[:, 0].set(t0)
     if save_t1:
         ts = ts.at[:, -1].set(t1)
     return Solution(
-        **out, status=as_status(status), ts=ts,
+        **out, status=status, ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
+        **stepping(*jtu.tree_map(per_execution, (run.solver, run.controller))),
     )
-
-
-def auto_engine(platform: str) -> str:
-    """The engine `engine="auto"` takes where the batched engine applies, by the platform of the
-    devices the executions run on: `"batched"` on `"cpu"`, `"vmap"` elsewhere.
-
-    The batched loop keeps every execution's state as one vector per component and does the
-    rare work (epoch start, root location, reset) on gathered blocks, pass after pass: on a few
-    CPU cores that saves the work of executions not needing it. On a GPU the per-execution
-    loop under `jax.vmap` runs each iteration as wide as the batch with no gathering, and is
-    the faster of the two (docs: Benchmarks, On one GPU)."""
-    return "batched" if platform == "cpu" else "vmap"
 
 
 def _devices(devices, N: int) -> list:

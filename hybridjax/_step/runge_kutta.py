@@ -36,11 +36,12 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jax import lax
 
-# Explicit RK solvers whose `tableau` the unrolled step reproduces (diffrax classes, not
-# subclasses a user might have changed the step of).
+# Explicit RK solvers whose `tableau` the unrolled step reproduces; a solver is recognised by
+# its tableau (`can_unroll`), so a subclass of one of them that keeps it qualifies too.
 UNROLLED_SOLVERS = (diffrax.Heun, diffrax.Midpoint, diffrax.Ralston, diffrax.Bosh3,
                     diffrax.Tsit5, diffrax.Dopri5, diffrax.Dopri8)
 
@@ -87,11 +88,31 @@ def unrolled_rms_norm(x):
     return jnp.sqrt(unrolled_sum(jnp.square(x)) / x.shape[0])
 
 
+def _same_tableau(t: diffrax.ButcherTableau, u: diffrax.ButcherTableau) -> bool:
+    def same(x, y):
+        return np.shape(x) == np.shape(y) and bool(np.array_equal(np.asarray(x), np.asarray(y)))
+
+    return (t.fsal == u.fsal and t.ssal == u.ssal and same(t.c, u.c) and same(t.b_sol, u.b_sol)
+            and same(t.b_error, u.b_error) and len(t.a_lower) == len(u.a_lower)
+            and all(same(x, y) for x, y in zip(t.a_lower, u.a_lower, strict=True)))
+
+
 def can_unroll(solver) -> bool:
-    """Whether `UnrolledERK` reproduces `solver`'s step (an explicit RK with a plain tableau)."""
-    return type(solver) in UNROLLED_SOLVERS and isinstance(
-        getattr(type(solver), "tableau", None), diffrax.ButcherTableau
-    )
+    """Whether `UnrolledERK` reproduces `solver`'s step: an explicit Runge-Kutta solver whose
+    Butcher tableau (compared entry by entry) and dense output are those of one of
+    `UNROLLED_SOLVERS`, and whose `step` is diffrax's own (a subclass that overrides it is
+    stepped by diffrax, through its own `step`)."""
+    cls = type(solver)
+    if not isinstance(solver, diffrax.AbstractERK) or cls.step is not diffrax.AbstractRungeKutta.step:
+        return False
+    tab = getattr(cls, "tableau", None)
+    if not isinstance(tab, diffrax.ButcherTableau):
+        return False
+    if cls in UNROLLED_SOLVERS:
+        return True
+    # A method is its tableau and its dense output: both as one of the known solvers'.
+    return any(_same_tableau(tab, known.tableau) and cls.interpolation_cls is known.interpolation_cls
+               for known in UNROLLED_SOLVERS)
 
 
 def can_use_fast_controller(controller) -> bool:
