@@ -63,7 +63,7 @@ from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import detect_zeno
-from .._step.runge_kutta import FastIController, UnrolledERK
+from .._step.runge_kutta import UnrolledERK
 from .dense_weights import dense_weights, stage_combination
 
 sg = lax.stop_gradient
@@ -405,27 +405,14 @@ class Loop:
         return _select(comp.completes, done, stopped)
 
     # ----------------------------------------------------------------- start of an epoch
-    def _epoch_controller(self, t, y, mode, needs_initial):
-        """The controller's initial step and state at an epoch's start (`controller.init`).
-
-        With a carried step (`first_step`), only an execution without a proposal (its first
-        epoch) uses the initial step: Hairer's rule (two evaluations of the vector field) runs
-        only where one needs it. A PID controller's state does not depend on the initial step."""
-
-        def init(dt0):
-            return self.controller.init(self.terms, t, self.t1, y, dt0, (mode, self.args), self.solver.func,
-                                        self.error_order())
-
-        if not (self.carry_step and isinstance(self.controller, FastIController)):
-            return init(self.dt0)
-        return lax.cond(eqxi.unvmap_any(needs_initial), lambda: init(None), lambda: init(jnp.ones_like(t)))
-
     def start_stage(self, st: LoopState) -> LoopState:
         active = st.at_start & ~st.done
 
         def run(st):
             t, y, mode = sg(st.t), sg(st.y), st.mode
-            t_init, ctrl_state = self._epoch_controller(t, y, mode, active & (st.h <= 0))
+            t_init, ctrl_state = self.controller.init(
+                self.terms, t, self.t1, y, self.dt0, (mode, self.args), self.solver.func, self.error_order()
+            )
             start = epoch_start(self.kern, mode, t, y, sg(self.args), st.h, t_init - t, carry=self.carry_step,
                                 rtol=self.rtol, atol=self.atol, event_tol=self.event_tol, eps=self.eps)
             K = self.kern.num_transitions
