@@ -72,7 +72,7 @@ from .scene import (
     _identity,
     _range,
     _releases,
-    _search,
+    run_search,
     _terminal_domain,
     _terminal_flow,
     witness_text,
@@ -597,12 +597,7 @@ def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
 
 def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
     eq, ineq = _friction_queries(scene, margin)
-    count = len(queries)
-    padded = max(8, 1 << max(count - 1, 0).bit_length())  # powers of two: few compiled sizes
-    queries = list(queries) + [queries[0]] * (padded - count)
-    stacked = jtu.tree_map(lambda *xs: jnp.stack(xs), *queries)
-    out = _search(eq, ineq, samples[0], samples[1], stacked, args_batch, tol, num_starts)
-    return jtu.tree_map(lambda a: np.asarray(a)[:count], out)
+    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
 
 
 # ----------------------------------------------------------------------------- the system

@@ -537,18 +537,51 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
 
 def _run_queries(scene, queries, args_batch, samples, margin, least_norm, tol, num_starts):
     """find_point for every (query, args value): Witness with leading axes (Q, V)."""
-    ts, xs = samples
     eq, ineq = _query_functions(scene, margin, least_norm)
-    Q = len(queries)
-    padded = max(8, 1 << max(Q - 1, 0).bit_length())  # powers of two: few distinct compiled sizes
-    queries = list(queries) + [queries[0]] * (padded - Q)
-    stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries)
-    out = _search(eq, ineq, ts, xs, stacked, args_batch, tol, num_starts)
-    return jtu.tree_map(lambda a: np.asarray(a)[:Q], out)
+    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
 
 
-@eqx.filter_jit
-def _search(eq, ineq, ts, xs, queries, args_batch, tol, num_starts):
+# Queries per call of the compiled search: every call has this many (the last one padded), so a
+# scene's search compiles once, whatever the number of queries of a level.
+SEARCH_CHUNK = 8
+# The search runs a few times per build and its program is large (the contact equations, their
+# derivatives, the trust-region solve): XLA's backend optimisation would take most of its
+# compile time and save little of its run time.
+_SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+
+
+def run_search(eq, ineq, queries, args_batch, samples, tol, num_starts):
+    """`_search` over `queries` in chunks of `SEARCH_CHUNK`: Witness with leading axes (Q, V)."""
+    ts, xs = samples
+    count = len(queries)
+    padded = -(-count // SEARCH_CHUNK) * SEARCH_CHUNK
+    queries = list(queries) + [queries[0]] * (padded - count)
+    outs = []
+    for start in range(0, padded, SEARCH_CHUNK):
+        stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries[start : start + SEARCH_CHUNK])
+        operands = (ts, xs, stacked, args_batch)
+        shapes = tuple((a.shape, a.dtype) for a in jtu.tree_leaves(operands))
+        run = _compiled_search(eq, ineq, tol, num_starts, jtu.tree_structure(operands), shapes, operands)
+        outs.append(run(*operands))
+    return jtu.tree_map(lambda *a: np.concatenate([np.asarray(b) for b in a])[:count], *outs)
+
+
+def _compiled_search(eq, ineq, tol, num_starts, structure, shapes, operands):
+    """The search's executable for these constraint functions and operand shapes: compiled on
+    first use (`_SEARCH_COMPILE`), then reused for every level and `args` value of the scene."""
+    key = (eq, ineq, tol, num_starts, structure, shapes)
+    if key not in _SEARCHES:
+        if len(_SEARCHES) >= 8:
+            _SEARCHES.pop(next(iter(_SEARCHES)))
+        fn = jax.jit(functools.partial(_search, eq, ineq, tol=tol, num_starts=num_starts))
+        _SEARCHES[key] = fn.trace(*operands).lower().compile(_SEARCH_COMPILE)
+    return _SEARCHES[key]
+
+
+_SEARCHES: dict = {}
+
+
+def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
     def one(Q, args):
         return find_point(eq, ineq, ts, xs, (args, Q), tol=tol, num_starts=num_starts)
 
