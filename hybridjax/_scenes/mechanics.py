@@ -143,15 +143,18 @@ def impact_map(kin: Kinematics, held, e, least_norm=False):
 
 
 def gram_independence(G, held):
-    r"""$\min_j d_j / \max_j G_{jj}$, $d_j$ the pivots ($L_{jj}^2$) of the Cholesky factor of
-    the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
+    r"""$\min_j d_j / \max_j G_{jj}$ over the held rows $j$, $d_j$ the pivots ($L_{jj}^2$) of the
+    Cholesky factor of the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
     NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
     pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
     as `kkt_solve` (no LAPACK call per lane)."""
     G = jnp.where((held[:, None] > 0) & (held[None, :] > 0), G, 0.0) + jnp.diag(1.0 - held)
     L = small_linalg.cholesky(0.5 * (G + G.T))
     pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
-    return jnp.min(pivots) / jnp.max(jnp.diag(G))
+    on = held > 0
+    # Over the held rows alone: the rows not held (pivot 1) do not change the ratio.
+    ratio = jnp.min(jnp.where(on, pivots, jnp.inf)) / jnp.max(jnp.where(on, jnp.diag(G), 0.0))
+    return jnp.where(jnp.any(on), ratio, 1.0)
 
 
 _INDEPENDENT = 1e-9  # `gram_independence` below this: dependent
