@@ -54,8 +54,11 @@ from .._definition.system import Mode, Transition
 from .indexed import _by_mode
 from .mechanics import (
     _INDEPENDENT,
+    armed_values,
+    constraint_gaps,
     impact,
     impact_candidate,
+    impact_gaps,
     impact_map,
     independence,
     kinematics,
@@ -72,9 +75,9 @@ from .scene import (
     _identity,
     _range,
     _releases,
-    run_search,
     _terminal_domain,
     _terminal_flow,
+    run_search,
     witness_text,
 )
 
@@ -466,10 +469,11 @@ class _FrictionImpact(eqx.Module):
 
     def guard(self, ids: tuple):
         """a_k where the outcome is one of `ids` (-1: none valid), positive elsewhere."""
-        k_fn = self.scene.constraints[self.k].fn
+        n = self.scene.dim
 
         def g(t, x, args):
-            a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
+            gaps = constraint_gaps(self.scene, t, x[:n], args)
+            a = impact_gaps(self.scene, t, x[:n], args, gaps)[self.k]
             got = self.outcome_id(*jax.lax.stop_gradient((t, x, args)))
             return selection_guard(a, jnp.any(jnp.stack([got == i for i in ids])))
 
@@ -520,6 +524,8 @@ def _friction_queries(scene: Scene, margin: float):
         mu = friction_coefficients(scene, args, dt)
         kin = kinematics(scene, fns, t, q, dq, args)
         a, J, rate, bias = kin.gap[:K], kin.J, kin.adot, kin.bias
+        open_gap = impact_gaps(scene, t, q, args, kin.gap)
+        armed = armed_values(scene, t, q, args)
         ddq, lam = friction_acceleration(scene, kin, mu, Q.rows, Q.sign, "search")
         lam_n, lam_t, v_t = lam[:K], tan @ lam, tan @ rate
         acc_t = tan @ (J @ ddq + bias)
@@ -542,7 +548,8 @@ def _friction_queries(scene: Scene, margin: float):
 
         ineq = jnp.concatenate(
             [
-                where(uni * (1 - Q.held) * (1 - Q.hit), a),
+                where(uni * (1 - Q.held) * (1 - Q.hit), open_gap),
+                where(Q.hit, armed),
                 where(slipping * (1 - stopping), s * v_t),
                 where(uni * Q.held * Q.flowing * (1 - Q.lift), lam_n),
                 where(stuck * Q.flowing * (1 - Q.unstick), mu * lam_n - jnp.abs(lam_t)),
@@ -860,7 +867,7 @@ class FrictionEvaluation(ModeIndexed):
         kin = self._kinematics(t, y, args)
         mu = friction_coefficients(self.scene, args, y.dtype)
         (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
-        gaps, rate = kin.gap[:K], kin.adot
+        gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
         slots = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs]
 
         def speed(sp):

@@ -22,6 +22,7 @@ from jax import lax
 from .._definition.indexed import ModeIndexed
 from .._definition.kernels import dispatch, select_by_mode
 from .mechanics import (
+    impact_gaps,
     impact_map,
     kinematics,
     release_choice,
@@ -105,7 +106,6 @@ class ContactEvaluation(ModeIndexed):
         """(S, m): S (P, rows) picks the rows `mode` holds (P: the most rows any mode holds),
         m (P,) marks the entries in use. A mode's solve is on its own rows: its size is P,
         not the scene's number of rows."""
-        K = len(self.scene.constraints)
         _, owners = self._rows()
         held = [[r for r, o in enumerate(owners) if s is not None and o in s] for s in self.mode_sets]
         P = max(map(len, held), default=0)
@@ -142,7 +142,7 @@ class ContactEvaluation(ModeIndexed):
         K = len(self.scene.constraints)
         kin = self._kinematics(t, y, args)
         _, lam = self._acceleration(mode, kin, y.dtype)
-        gaps = kin.gap[:K]
+        gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
         # Every impact's choice of the current mode in one vmapped solve, and only where one of
         # its selection guards is at or below zero, where it is read (`selection_guard`):
         # under `jax.vmap`, where one execution needs it.

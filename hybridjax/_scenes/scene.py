@@ -62,8 +62,11 @@ from .mechanics import (
     _INDEPENDENT,
     _row_mask,
     acceleration,
+    armed_values,
     constrained_acceleration,
+    constraint_gaps,
     impact,
+    impact_gaps,
     impact_map,
     independence,
     kinematics,
@@ -119,6 +122,13 @@ class Constraint(eqx.Module):
       of a unilateral contact with a `tangent`: the contact then sticks ($\dot b = 0$ held,
       $|\lambda_t| \le \mu \lambda_n$) or slips ($\lambda_t = -\mu\, \mathrm{sign}(\dot b)
       \lambda_n$), each a mode (`"name:stick"`, `"name:slip+"`, `"name:slip-"`); see `contact_system`.
+    - `armed`: optional `armed(t, q, args) -> scalar` $c$ of a unilateral contact: it can be hit
+      only where $c \ge 0$. Its impact guard is $\max(a, -c) \le 0$ (the gap closed while the
+      contact is armed); where $c < 0$ the gap may be negative (a walker's swing foot passing
+      through the ground at mid-stance) and the contact is not watched. The point search asks
+      an impact's witness for $c \ge 0$, and the other open contacts for $\max(a, -c) \ge 0$.
+      Choose $c$ so that the gap is open where $c$ turns positive (the swing foot ahead of the
+      stance foot by a little): a contact armed with its gap closed is hit at once.
 
     !!! Example
 
@@ -133,6 +143,7 @@ class Constraint(eqx.Module):
     restitution: float | Callable | None = eqx.field(static=True, default=None)
     tangent: Callable | None = eqx.field(static=True, default=None)
     friction: float | Callable | None = eqx.field(static=True, default=None)
+    armed: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name or "+" in self.name:
@@ -146,6 +157,10 @@ class Constraint(eqx.Module):
         if self.tangent is not None and not callable(self.tangent):
             raise TypeError(f"Constraint '{self.name}': `tangent` must be callable or None.")
         _check_friction(self)
+        if self.armed is not None and (self.kind != UNILATERAL or not callable(self.armed)):
+            raise ValueError(
+                f"Constraint '{self.name}': `armed` must be a callable of a unilateral constraint."
+            )
         e = self.restitution
         if e is not None and self.kind == BILATERAL:
             raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
@@ -272,7 +287,7 @@ class Scene(eqx.Module):
         if (s := shape(self.forces, t, q, q)) != (n,):
             raise ValueError(f"Scene: `forces` returns shape {s}, expected {(n,)}.")
         for c in self.constraints:
-            for role, fn in (("fn", c.fn), ("tangent", c.tangent)):
+            for role, fn in (("fn", c.fn), ("tangent", c.tangent), ("armed", c.armed)):
                 if fn is not None and (s := shape(fn, t, q)) not in ((), (1,)):
                     raise ValueError(f"Constraint '{c.name}': `{role}` returns shape {s}, expected a scalar.")
 
@@ -411,13 +426,19 @@ class _Impact(eqx.Module):
         )
 
     def guard(self, chosen: tuple):
-        """a_k where the selected candidate is in `chosen`, positive elsewhere."""
-        k_fn = self.scene.constraints[self.k].fn
+        """a_k (`mechanics.impact_gaps`: max(a_k, -c_k) for an armed contact) where the selected
+        candidate is in `chosen`, positive elsewhere."""
+        n, k = self.scene.dim, self.k
+
+        def gap(t, x, args):
+            q = x[:n]
+            return impact_gaps(self.scene, t, q, args, constraint_gaps(self.scene, t, q, args))[k]
+
         if set(range(len(self.candidates))) <= set(chosen):
-            return lambda t, x, args: k_fn(t, x[: self.scene.dim], args)
+            return gap
 
         def g(t, x, args):
-            a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
+            a = gap(t, x, args)
             # Which outcome holds is a discrete choice: no derivative flows through it.
             sel = self.select(*jax.lax.stop_gradient((t, x, args)))
             return selection_guard(a, jnp.any(jnp.stack([sel == c for c in chosen] + [False])))
@@ -508,6 +529,8 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         held_rows = _row_mask(owners, Q.held, x.dtype)
         kin = kinematics(scene, fns, t, q, dq, args)
         a, adot = kin.gap, kin.adot
+        open_gap = impact_gaps(scene, t, q, args, a)
+        armed = armed_values(scene, t, q, args)
         _, lam = acceleration(kin, held_rows, least_norm)
         e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
@@ -519,7 +542,8 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         adot = adot_gap
         one = jnp.ones_like(a)
         ineq = [
-            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, a, one),
+            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, open_gap, one),
+            jnp.where(Q.hit > 0, armed, one),
             jnp.where((uni * Q.held * Q.flowing) > 0, lam, one),
             jnp.where(Q.lift > 0, -lam - margin, one),
             jnp.where(Q.hit > 0, -adot - margin, one),
