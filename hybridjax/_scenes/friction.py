@@ -873,23 +873,24 @@ class FrictionEvaluation(ModeIndexed):
         def speed(sp):
             return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
 
-        # The discrete choices, without gradients, each once, where a guard reading it is <= 0.
-        kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
-        impacts = list(dict.fromkeys(sp.impact for _, sp in slots if sp.kind == "impact"))
-        stops = list(dict.fromkeys((sp.state, sp.j) for _, sp in slots if sp.kind == "stop"))
+        # The discrete choices of the current mode (an impact's outcome per constraint, a stop's
+        # decision per slipping contact), each one vmapped solve without gradients, computed
+        # only where a guard of the current mode that reads one is at or below zero.
+        imp_t, stop_t = self._impact_tables(), self._stop_tables()
+        has_impact = _by_mode(mode, imp_t["present"].any(axis=2).astype(float), y.dtype) > 0
+        has_stop = _by_mode(mode, stop_t["present"].any(axis=2).astype(float), y.dtype) > 0
+        slipping = sign != 0
+        speeds = sign * (jnp.asarray(tan, y.dtype) @ rate)
+        need = jnp.any(has_impact & (gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
 
         def choices():
-            got = [imp.outcome_from(kin_sg, imp.restitution(args_sg, y.dtype)) for imp in impacts]
-            dec = [stop_decision(self.scene, S, j, kin_sg, mu_sg, y_sg[n:]) for S, j in stops]
-            return jnp.asarray(got + [0], jnp.int32), jnp.asarray([w for w, _ in dec] + [0]), \
-                jnp.asarray([i for _, i in dec] + [False])
+            kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
+            got = self._impact_outcomes(mode, kin_sg, args_sg, imp_t, y.dtype)
+            which, inside = self._stop_decisions(mode, kin_sg, mu_sg, y_sg[n:], stop_t, y.dtype)
+            return got, which, inside
 
-        need = [(mode == m) & (gaps[sp.j] <= 0) for m, sp in slots if sp.kind == "impact"]
-        need += [(mode == m) & (speed(sp) <= 0) for m, sp in slots if sp.kind == "stop"]
-        if need:
-            none = (jnp.full(len(impacts) + 1, -1, jnp.int32), jnp.full(len(stops) + 1, -1),
-                    jnp.zeros(len(stops) + 1, bool))
-            got, which, inside = lax.cond(eqxi.unvmap_any(jnp.any(jnp.stack(need))), choices, lambda: none)
+        none = (jnp.full(K, -1, jnp.int32), jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool))
+        got, which, inside = lax.cond(eqxi.unvmap_any(need), choices, lambda: none)
         consistency_value = None
         if any(sp.kind == "painleve" for _, sp in slots):
             consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
@@ -898,20 +899,108 @@ class FrictionEvaluation(ModeIndexed):
             if sp.kind == "painleve":
                 return consistency_value
             if sp.kind == "impact":
-                o = got[impacts.index(sp.impact)]
+                o = got[sp.j]
                 return selection_guard(gaps[sp.j], jnp.any(jnp.stack([o == i for i in sp.ids])))
             if sp.kind == "lift":
                 return lam[sp.j] + sp.offset
             if sp.kind == "cone":
                 return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
             if sp.kind == "stop":
-                d = stops.index((sp.state, sp.j))
-                go = stop_goes(which[d], inside[d], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
+                go = stop_goes(which[sp.j], inside[sp.j], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
                 return selection_guard(speed(sp), go)
             return jnp.asarray(sp.offset, y.dtype)
 
         rows = [[value(sp) for sp in specs] for specs in self.slots]
         return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+
+    def _impact_tables(self) -> dict:
+        """Per (mode, impacting constraint k) with an impact slot, its candidates padded to C
+        (`_FrictionImpact.outcome_tables`): held rows (M, K, C, R), present (M, K, C), the
+        outcome code's bits (M, K, C, K) and offsets (M, K, C), the gap rows (M, K, R)."""
+        K, R, M = len(self.scene.constraints), len(_layout(self.scene)[0]), len(self.slots)
+        impacts = {(m, sp.j): sp.impact for m, specs in enumerate(self.slots) for sp in specs
+                   if sp.kind == "impact"}
+        C = max((len(imp.candidates) for imp in impacts.values()), default=0)
+        t = dict(held=np.zeros((M, K, C, R)), present=np.zeros((M, K, C), bool), bits=np.zeros((M, K, C, K)),
+                 offsets=np.zeros((M, K, C)), gap_rows=np.zeros((M, K, R), bool))
+        for (m, k), imp in impacts.items():
+            held, bits, offsets, gap_rows = imp.outcome_tables()
+            c = len(imp.candidates)
+            t["held"][m, k, :c], t["present"][m, k, :c] = held, True
+            t["bits"][m, k, :c], t["offsets"][m, k, :c], t["gap_rows"][m, k] = bits, offsets, gap_rows
+        return t
+
+    def _impact_outcomes(self, mode, kin, args, t, dtype):
+        """(K,): the outcome (`_FrictionImpact.outcome_from`) of an impact of each constraint in
+        `mode`, -1 where none solves it or none is built; one vmapped solve."""
+        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
+        C = t["held"].shape[2]
+        if C == 0:
+            return jnp.full(K, -1, jnp.int32)
+        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
+        held, bits = pick["held"].reshape(K, C, R), pick["bits"].reshape(K, C, K)
+        present, offsets = pick["present"].reshape(K, C) > 0, pick["offsets"].reshape(K, C)
+        gap_rows = pick["gap_rows"].reshape(K, R) > 0
+        e_all = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
+        tan = jnp.asarray(_layout(self.scene)[2], dtype)
+        every = jnp.ones(R, bool)
+
+        def one(k_hit, h, p, b, off, g):
+            e = jnp.concatenate([k_hit * e_all, jnp.zeros(R - K, dtype)])
+            ok, rates = jax.vmap(lambda hc: impact_candidate(kin, hc, e, every, g))(h)
+            ok = ok & p
+            code = jnp.sum(b * ((rates @ tan.T) < 0), axis=1)
+            c = jnp.argmax(ok)
+            return jnp.where(jnp.any(ok), off[c] + code[c], -1).astype(jnp.int32)
+
+        return jax.vmap(one)(jnp.eye(K, dtype=dtype), held, present, bits, offsets, gap_rows)
+
+    def _stop_tables(self) -> dict:
+        """Per (mode, slipping contact j) with a stop slot, the candidate sets of other contacts
+        stopped with it (`stop_subsets`), padded to C: present (M, K, C), members (M, K, C, K),
+        others (M, K, K), and the stuck state's rows, signs and least-norm flag."""
+        K, R, M = len(self.scene.constraints), len(_layout(self.scene)[0]), len(self.slots)
+        stops = {(m, sp.j): sp.state for m, specs in enumerate(self.slots) for sp in specs
+                 if sp.kind == "stop"}
+        C = max((len(stop_subsets(S, j)) for (_, j), S in stops.items()), default=0)
+        t = dict(present=np.zeros((M, K, C), bool), members=np.zeros((M, K, C, K)),
+                 others=np.zeros((M, K, K)), rows=np.zeros((M, K, C, R)), sign=np.zeros((M, K, C, K)),
+                 least=np.zeros((M, K, C)))
+        for (m, j), S in stops.items():
+            t["others"][m, j, list(others_slipping(S, j))] = 1.0
+            for c, members in enumerate(stop_subsets(S, j)):
+                stuck = tuple(STICK if i in (j, *members) else st for i, st in enumerate(S))
+                _, rows_mask, sign = _state_arrays(self.scene, stuck)
+                t["present"][m, j, c] = True
+                t["members"][m, j, c, [j, *members]] = 1.0
+                t["rows"][m, j, c], t["sign"][m, j, c] = rows_mask, sign
+                t["least"][m, j, c] = float(rows_mask.sum() > self.scene.dim)
+        return t
+
+    def _stop_decisions(self, mode, kin, mu, dq, t, dtype):
+        """(K,) each: `stop_decision` of each slipping contact j of `mode` (the index of the set
+        of other contacts stopped with it, and whether all of those and j, stuck, are in their
+        cones); one vmapped friction solve."""
+        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
+        C = t["present"].shape[2]
+        if C == 0:
+            return jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool)
+        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
+        present, members = pick["present"].reshape(K, C) > 0, pick["members"].reshape(K, C, K) > 0
+        others, rows_t = pick["others"].reshape(K, K) > 0, pick["rows"].reshape(K, C, R)
+        sign_t, least_t = pick["sign"].reshape(K, C, K), pick["least"].reshape(K, C)
+        tan = jnp.asarray(_layout(self.scene)[2], dtype)
+        stopped = jnp.abs(tan @ kin.adot) <= _SPEED_TIE * (1.0 + jnp.max(jnp.abs(dq)))
+        lam = jax.vmap(jax.vmap(lambda r, s, f: friction_acceleration(self.scene, kin, mu, r, s, f)[1]))(
+            rows_t, sign_t, least_t
+        )
+        lam_n, lam_t = lam[..., :K], lam @ tan.T
+        ok = jnp.all(~members | (jnp.abs(lam_t) <= mu[None, None, :] * lam_n), axis=-1)
+        # A candidate matches where exactly its other members are stopped (j itself is a member).
+        match = jnp.all(~others[:, None, :] | (stopped[None, None, :] == members), axis=-1) & present
+        which = jnp.where(jnp.any(match, axis=1), jnp.argmax(match, axis=1), -1)
+        inside = jnp.take_along_axis(ok, jnp.maximum(which, 0)[:, None], axis=1)[:, 0] & (which >= 0)
+        return which.astype(jnp.int32), inside
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n, K = self.scene.dim, len(self.scene.constraints)
