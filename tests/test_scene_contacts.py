@@ -59,3 +59,45 @@ def test_armed_floor_is_passed_through_where_disarmed_and_hit_where_armed():
     np.testing.assert_allclose(sol.event_times[0], t_hit, rtol=0, atol=1e-10)
     # Plastic: it slides on at vx.
     np.testing.assert_allclose(sol.final_state, [-0.5 + vx * 1.0, 0.0, vx, 0.0], atol=1e-10)
+
+
+# ----------------------------------------------------------------------------- two ends that stop together
+
+ROD_MU = 0.3
+ROD_ARGS = {"m": jnp.asarray(1.0), "g": jnp.asarray(G), "L": jnp.asarray(1.0), "mu": jnp.asarray(ROD_MU)}
+
+
+@functools.cache
+def rod_system():
+    """The rod with friction at both ends (built on first use)."""
+    return hj.contact_system(hj.examples.rod_scene(friction=("left", "right")), ["free"], ROD_ARGS)
+
+
+def test_rod_dropped_flat_lands_on_both_ends_slides_and_sticks_at_the_closed_form_times():
+    # Dropped flat from height z0 with speed v0 along x: both ends land at sqrt(2 z0 / g) (taken
+    # one after the other at that instant), slide with deceleration mu g (each end carries
+    # m g / 2 and its friction mu m g / 2, no torque) and stop together after v0 / (mu g).
+    x0, z0, v0 = 0.1, 0.5, 1.0
+    rod = rod_system()
+    sol = hj.simulate(
+        rod,
+        jnp.array([x0, z0, 0.0, v0, 0.0, 0.0]),
+        "free",
+        0.0,
+        1.0,
+        ROD_ARGS,
+        stepsize_controller=TIGHT,
+        saveat=jnp.array([0.9]),
+        max_epochs=8,
+    )
+    t1 = math.sqrt(2 * z0 / G)
+    t_stop = v0 / (ROD_MU * G)
+    names = [rod.modes[int(m)].name for m in sol.epoch_modes[: int(sol.num_events) + 1]]
+    assert names == ["free", "left:slip+", "left:slip++right:slip+", "left:stick+right:stick"]
+    assert sol.status == hj.Status.T1_REACHED
+    np.testing.assert_allclose(sol.event_times[:3], [t1, t1, t1 + t_stop], rtol=0, atol=1e-9)
+    x_end = x0 + v0 * t1 + v0**2 / (2 * ROD_MU * G)
+    np.testing.assert_allclose(sol.final_state, [x_end, 0.0, 0.0, 0.0, 0.0, 0.0], atol=1e-9)
+    # At rest: m g / 2 on each end, no tangential force (least norm; columns left, right, left.t,
+    # right.t).
+    np.testing.assert_allclose(rod.contact_forces(sol), [[G / 2, G / 2, 0.0, 0.0]], atol=1e-9)

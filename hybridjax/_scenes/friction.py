@@ -437,7 +437,9 @@ class _FrictionImpact(eqx.Module):
             offsets[c] = offset
             offset += 2 ** len(fr)
         source = {i for i, st in enumerate(self.source) if st is not None} | {self.k}
-        gap_rows = np.asarray([r < K and o in source for r, o in enumerate(owners)])
+        # The unilateral constraints' gap rows: a joint's impulse has either sign.
+        uni = _layout(self.scene)[4]
+        gap_rows = np.asarray([r < K and o in source and uni[o] > 0 for r, o in enumerate(owners)])
         return held, bits, offsets, gap_rows
 
     def outcome_from(self, kin, e):

@@ -39,7 +39,8 @@ class ReleaseChoice(eqx.Module):
     """An impact's release candidates on the rows of all the scene's constraints, as
     `mechanics.release_choice` takes them: per candidate the rows held, the impacting
     constraint `hit` (its restitution on its gap row), the rows of the constraints involved
-    (`involved`: their indices, in the order of the impact's own rows) and the gap rows."""
+    (`involved`: their indices, in the order of the impact's own rows) and the gap rows of the
+    unilateral constraints involved (impulses >= 0 and released rates >= 0 are asked there)."""
 
     held: tuple = eqx.field(static=True)
     hit: int = eqx.field(static=True)

@@ -406,7 +406,9 @@ class _Impact(eqx.Module):
         num_rows = len(self.fns())
         kin = kinematics(self.scene, self.fns(), t, x[:n], x[n:], args)
         held = jnp.stack([self.held(c, dtype) for c in range(len(self.candidates))])
-        gap_rows = jnp.arange(num_rows) < len(self.order)
+        # The unilateral constraints' gap rows: a joint's impulse has either sign.
+        gap_rows = jnp.asarray([r < len(self.order) and self.scene.constraints[o].kind == UNILATERAL
+                                for r, o in enumerate(rows(self.scene, self.order)[1])])
         return release_choice(kin, held, self._e(args, dtype), jnp.ones(num_rows, bool), gap_rows,
                               self.least_norm)
 
@@ -422,7 +424,10 @@ class _Impact(eqx.Module):
             held=tuple(tuple(float(o in self.order and o not in R) for o in owners) for R in self.candidates),
             hit=self.k,
             involved=tuple(index),
-            gap_rows=tuple(o in self.order and r < K for r, o in enumerate(owners)),
+            gap_rows=tuple(
+                o in self.order and r < K and self.scene.constraints[o].kind == UNILATERAL
+                for r, o in enumerate(owners)
+            ),
         )
 
     def guard(self, chosen: tuple):
