@@ -885,8 +885,9 @@ class FrictionEvaluation(ModeIndexed):
         speeds = sign * (jnp.asarray(tan, y.dtype) @ rate)
         need = jnp.any(has_impact & (gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
 
+        kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
+
         def choices():
-            kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
             got = self._impact_outcomes(mode, kin_sg, args_sg, imp_t, y.dtype)
             which, inside = self._stop_decisions(mode, kin_sg, mu_sg, y_sg[n:], stop_t, y.dtype)
             return got, which, inside

@@ -151,7 +151,8 @@ class ContactEvaluation(ModeIndexed):
         if present.any():
             has = _by_mode(mode, present.any(axis=2).astype(float), y.dtype) > 0
             need = jnp.any(has & (gaps <= 0))
-            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(mode, kin, args, y.dtype),
+            kin_sg, args_sg = lax.stop_gradient((kin, args))
+            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(mode, kin_sg, args_sg, y.dtype),
                              lambda: jnp.full((K,), -1, jnp.int32))
         values = [gaps, lam]
         base = K + lam.shape[0]
@@ -199,8 +200,8 @@ class ContactEvaluation(ModeIndexed):
         return held, present, gap_rows, involved
 
     def _choices(self, mode, kin, args, dtype):
-        """`release_choice` of the impact of each constraint k in `mode` at the state of `kin`,
-        without gradients: (K,) candidate indices (-1 where none solves it, or none is read).
+        """`release_choice` of the impact of each constraint k in `mode` at the state of `kin`
+        (given without gradients): (K,) candidate indices (-1 where none solves it, or none is read).
         The K impacts and their candidates are one vmapped solve on the scene's rows."""
         K, R = len(self.scene.constraints), len(self._rows()[0])
         held, present, gap_rows, involved = self._choice_tables()
@@ -209,8 +210,7 @@ class ContactEvaluation(ModeIndexed):
         present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C) > 0
         gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R) > 0
         involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R) > 0
-        e = lax.stop_gradient(self._restitution(args, dtype))
-        kin = lax.stop_gradient(kin)
+        e = self._restitution(args, dtype)
         hit = jnp.eye(K, R, dtype=dtype)  # constraint k's restitution acts on its gap row alone
 
         def one(k_hit, h, p, g, i):
