@@ -244,15 +244,31 @@ def consistency(scene: Scene, kin, mu, rows_mask, sign):
     return small_linalg.det(coupled) - PAINLEVE_RATIO * small_linalg.det(frictionless)
 
 
+def stop_ties(kin, ddq, tan, dq):
+    r"""(K, K): `[j, i]` true where contacts j and i stop at one instant: their sliding speeds
+    $v$ and accelerations $a$ (tangent rows) give the same time to zero, $v_i a_j = v_j a_i$
+    within `_SPEED_TIE` $(1 + \max|\dot q|)(|a_i| + |a_j|)$. Time-to-zero rather than
+    speed: at a state past the instant (the end of an integrator's step) two contacts that
+    stop together have equal times, not speeds near 0."""
+    tan = jnp.asarray(tan, kin.J.dtype)
+    v, a = tan @ kin.adot, tan @ (kin.J @ ddq + kin.bias)
+    cross = jnp.abs(v[None, :] * a[:, None] - v[:, None] * a[None, :])
+    scale = _SPEED_TIE * (1.0 + jnp.max(jnp.abs(dq))) * (jnp.abs(a)[:, None] + jnp.abs(a)[None, :])
+    return cross <= scale
+
+
 def stop_decision(scene: Scene, state: tuple, j: int, kin, mu, dq):
     """Where slipping contact j of `state` stops: (the index in `stop_subsets(state, j)` of the
-    other slipping contacts stopped with it, their sliding speeds within `_SPEED_TIE` of 0;
-    whether all of those and j, stuck, have their forces in their cones)."""
+    other slipping contacts stopped with it (`stop_ties`); whether all of those and j, stuck,
+    have their forces in their cones)."""
     tan = _layout(scene)[2]
     row = [int(np.argmax(tan[i])) for i in range(len(state))]
     others = others_slipping(state, j)
-    scale = 1.0 + jnp.max(jnp.abs(dq))
-    stopped = [jnp.abs(kin.adot[row[i]]) <= _SPEED_TIE * scale for i in others]
+    _, rows_now, sign_now = _state_arrays(scene, state)
+    ddq = friction_acceleration(scene, kin, mu, jnp.asarray(rows_now, kin.J.dtype),
+                                jnp.asarray(sign_now, kin.J.dtype), bool(rows_now.sum() > scene.dim))[0]
+    ties = stop_ties(kin, ddq, tan, dq)
+    stopped = [ties[j, i] for i in others]
     which, inside = jnp.array(-1), jnp.array(False)
     for c, members in enumerate(stop_subsets(state, j)):
         match = jnp.all(jnp.stack([stopped[others.index(i)] == (i in members) for i in others] + [True]))
@@ -868,7 +884,7 @@ class FrictionEvaluation(ModeIndexed):
         row = [int(np.argmax(tan[i])) for i in range(K)]
         kin = self._kinematics(t, y, args)
         mu = friction_coefficients(self.scene, args, y.dtype)
-        (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
+        (ddq, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
         gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
         slots = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs]
 
@@ -885,11 +901,11 @@ class FrictionEvaluation(ModeIndexed):
         speeds = sign * (jnp.asarray(tan, y.dtype) @ rate)
         need = jnp.any(has_impact & (gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
 
-        kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
+        kin_sg, mu_sg, y_sg, args_sg, ddq_sg = lax.stop_gradient((kin, mu, y, args, ddq))
 
         def choices():
             got = self._impact_outcomes(mode, kin_sg, args_sg, imp_t, y.dtype)
-            which, inside = self._stop_decisions(mode, kin_sg, mu_sg, y_sg[n:], stop_t, y.dtype)
+            which, inside = self._stop_decisions(mode, kin_sg, mu_sg, y_sg[n:], ddq_sg, stop_t, y.dtype)
             return got, which, inside
 
         none = (jnp.full(K, -1, jnp.int32), jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool))
@@ -980,7 +996,7 @@ class FrictionEvaluation(ModeIndexed):
                 t["least"][m, j, c] = float(rows_mask.sum() > self.scene.dim)
         return t
 
-    def _stop_decisions(self, mode, kin, mu, dq, t, dtype):
+    def _stop_decisions(self, mode, kin, mu, dq, ddq, t, dtype):
         """(K,) each: `stop_decision` of each slipping contact j of `mode` (the index of the set
         of other contacts stopped with it, and whether all of those and j, stuck, are in their
         cones); one vmapped friction solve."""
@@ -993,14 +1009,14 @@ class FrictionEvaluation(ModeIndexed):
         others, rows_t = pick["others"].reshape(K, K) > 0, pick["rows"].reshape(K, C, R)
         sign_t, least_t = pick["sign"].reshape(K, C, K), pick["least"].reshape(K, C)
         tan = jnp.asarray(_layout(self.scene)[2], dtype)
-        stopped = jnp.abs(tan @ kin.adot) <= _SPEED_TIE * (1.0 + jnp.max(jnp.abs(dq)))
+        stopped = stop_ties(kin, ddq, tan, dq)  # (j, i)
         lam = jax.vmap(jax.vmap(lambda r, s, f: friction_acceleration(self.scene, kin, mu, r, s, f)[1]))(
             rows_t, sign_t, least_t
         )
         lam_n, lam_t = lam[..., :K], lam @ tan.T
         ok = jnp.all(~members | (jnp.abs(lam_t) <= mu[None, None, :] * lam_n), axis=-1)
         # A candidate matches where exactly its other members are stopped (j itself is a member).
-        match = jnp.all(~others[:, None, :] | (stopped[None, None, :] == members), axis=-1) & present
+        match = jnp.all(~others[:, None, :] | (stopped[:, None, :] == members), axis=-1) & present
         which = jnp.where(jnp.any(match, axis=1), jnp.argmax(match, axis=1), -1)
         inside = jnp.take_along_axis(ok, jnp.maximum(which, 0)[:, None], axis=1)[:, 0] & (which >= 0)
         return which.astype(jnp.int32), inside
