@@ -117,7 +117,7 @@ class ContactEvaluation(ModeIndexed):
         return S, jnp.sum(S, axis=1)
 
     def _acceleration(self, mode, kin, dtype):
-        """$\ddot q$ and the row forces $\lambda$ (all rows, 0 where not held) of `mode`
+        r"""$\ddot q$ and the row forces $\lambda$ (all rows, 0 where not held) of `mode`
         (`mechanics.acceleration` on the mode's rows, `_selection`)."""
         S, m = self._selection(mode, dtype)
         if S.shape[0] == 0:
