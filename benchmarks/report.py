@@ -576,6 +576,13 @@ def scenes(res: dict) -> list[str]:
             f"faster at {cheaper}: it solves one K-row system per evaluation, where the branch form solves one "
             "system per mode and evaluates every transition's guard, so its program grows with the modes "
             "and transitions built. Measured both ways up to the K in the table; beyond, the mask form only."]
+    if "walker" in res:
+        w = res["walker"]
+        out += ["", "The compass-gait walker (`hj.examples.compass_gait_scene()`, relabelled legs): "
+                f"{w['modes']} modes, {w['transitions']} transitions; build {w['mask_build_s']:.1f} s, first "
+                f"`hj.simulate` compiled and run {w['walker_first_simulate_s']:.1f} s, batch compile "
+                f"{w['mask_compile_s']:.1f} s ({w['mask_compile_cpu_s']:.1f} s CPU), "
+                f"{_rate(w['mask_exec_per_s'])} executions/s of T = 3 s."]
     return out
 
 

@@ -10,8 +10,14 @@ mode's and transition's own function, the current one selected; measured up to K
 N = 256 executions from the free set (positions in a disc of radius 0.4, velocities in
 [-2, 2]^2), T = 1.5, Tsit5, rtol = atol = 1e-8, with the statuses reached and, where both forms ran, the largest difference between their event times.
 
-    python benchmarks/scenes.py            # K = 1 ... 8; prints a table, writes results/scenes.json
+The compass-gait walker (`hj.examples.compass_gait_scene()`, its stance foot sticking, the swing
+foot armed ahead of it, legs relabelled at heel strike): its build, the compile of one `hj.simulate`
+and of the batch, and executions per second, N = 256 executions of T = 3 s from a stance state with
+the hip's angular rate in [1.0, 1.4].
+
+    python benchmarks/scenes.py            # K = 1 ... 8 and the walker; writes results/scenes.json
     python benchmarks/scenes.py 1 2 3      # only these K (merged into an existing results file)
+    python benchmarks/scenes.py walker     # only the walker
 """
 
 import json
@@ -96,15 +102,74 @@ def one_k(k: int, forms) -> dict:
     return row
 
 
+def walker_state(alpha: float, w: float) -> np.ndarray:
+    """A stance state of the walker: feet at x = 0 (stance) and -2 l sin(alpha), everything
+    rotating at rate w about the stance foot (consistent with the legs and the pinned foot)."""
+    p = hj.examples.COMPASS_GAIT_ARGS
+    leg, b = p["a"] + p["b"], p["b"]
+    hip = np.array([-leg * np.sin(alpha), leg * np.cos(alpha)])
+    feet = (np.zeros(2), np.array([-2 * leg * np.sin(alpha), 0.0]))
+    points = [hip] + [hip + b / leg * (f - hip) for f in feet]
+    return np.concatenate([*points, *(w * np.array([r[1], -r[0]]) for r in points)])
+
+
+def walker() -> dict:
+    scene, relabel = hj.examples.compass_gait_scene()
+    args = {key: jnp.asarray(v) for key, v in hj.examples.COMPASS_GAIT_ARGS.items()}
+    ctrl = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    t = time.perf_counter()
+    system = hj.contact_system(scene, ["foot0"], args, relabels=[relabel])
+    build_s = time.perf_counter() - t
+    x1 = jnp.asarray(walker_state(0.2, 1.2))
+    one = jax.jit(lambda x: hj.simulate(system, x, 0, 0.0, 3.0, args, stepsize_controller=ctrl, max_epochs=16))
+    t = time.perf_counter()
+    sol = jax.block_until_ready(one(x1))
+    first_s = time.perf_counter() - t
+    rng = np.random.default_rng(0)
+    x0 = jnp.asarray(np.stack([walker_state(0.2, w) for w in rng.uniform(1.0, 1.4, N)]))
+    fn = jax.jit(
+        lambda x: hj.simulate_batch(system, x, 0, 0.0, 3.0, args, stepsize_controller=ctrl, max_epochs=16)
+    )
+    t, cpu = time.perf_counter(), time.process_time()
+    compiled = fn.trace(x0).lower().compile()
+    compile_s, compile_cpu_s = time.perf_counter() - t, time.process_time() - cpu
+    best = float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        batch = jax.block_until_ready(compiled(x0))
+        best = min(best, time.perf_counter() - t)
+    codes = np.asarray(batch.status)
+    statuses = {hj.STATUS_NAMES[c]: int(np.sum(codes == c)) for c in np.unique(codes)}
+    row = {
+        "modes": system.num_modes,
+        "transitions": system.num_transitions,
+        "mask_build_s": build_s,
+        "walker_first_simulate_s": first_s,
+        "mask_compile_s": compile_s,
+        "mask_compile_cpu_s": compile_cpu_s,
+        "mask_run_s": best,
+        "mask_exec_per_s": N / best,
+        "mask_statuses": statuses,
+        "steps_in_3_s": int(sol.num_events),
+    }
+    print(
+        f"walker: {system.num_modes} modes, build {build_s:.1f} s, first simulate {first_s:.1f} s, batch compile "
+        f"{compile_s:.1f} s ({compile_cpu_s:.1f} s CPU), {N / best:.0f} executions/s, {statuses}",
+        flush=True,
+    )
+    return row
+
+
 def main():
-    ks = [int(a) for a in sys.argv[1:]] or list(range(1, 9))
     from pathlib import Path
 
+    args = sys.argv[1:]
     path = Path(__file__).parent / "results" / "scenes.json"
-    rows = {r["K"]: r for r in json.loads(path.read_text())["rows"]} if path.exists() and sys.argv[1:] else {}
-    for k in ks:
-        # The branch form compiles in minutes from K = 4 on (its program grows with the modes built).
-        rows[k] = one_k(k, FORMS if k <= BRANCH_UP_TO else FORMS[:1])
+    old = json.loads(path.read_text()) if path.exists() and args else {}
+    rows = {r["K"]: r for r in old.get("rows", [])}
+    walker_row = old.get("walker")
+
+    def write():
         write_json(
             "scenes",
             {
@@ -113,8 +178,17 @@ def main():
                 "t1": T1,
                 "forms": FORMS,
                 "rows": [rows[k] for k in sorted(rows)],
+                **({"walker": walker_row} if walker_row else {}),
             },
         )
+
+    if not args or args == ["walker"]:
+        walker_row = walker()
+        write()
+    for k in [int(a) for a in args if a != "walker"] or ([] if args else list(range(1, 9))):
+        # The branch form compiles in minutes from K = 4 on (its program grows with the modes built).
+        rows[k] = one_k(k, FORMS if k <= BRANCH_UP_TO else FORMS[:1])
+        write()
 
 
 if __name__ == "__main__":

@@ -539,6 +539,88 @@ def rimless_wheel_scene_closed_form(
     return dict(state=np.concatenate([q, dq]), omega=w, multiplier=c * c)
 
 
+def compass_gait_scene() -> tuple[Scene, Relabel]:
+    r"""The compass-gait walker on a slope as a scene (Goswami, Thuilot and Espiau's model), with
+    the relabelling of its legs.
+
+    Three point masses in the slope's frame (x downhill, z normal to the slope): the hip
+    (mass `m_H`) at q[0:2] and each leg's mass `m` at q[2:4] and q[4:6], a distance b from the
+    hip along the leg; M is constant (diagonal), no velocity terms. Each leg is a rigid
+    massless rod of length l = a + b (bilateral constraints `leg0`, `leg1`:
+    $|p_i - h|^2 - b^2 = 0$) ending in a point foot $h + (l/b)(p_i - h)$. Foot i's gap is its
+    height, its tangent its x: a foot that touches sticks (plastic impact, unlimited friction).
+    Foot 1 is armed only where it is ahead of foot 0 by `args["ahead"]`, so the swing foot
+    passing through the ground at mid-stance is not an impact (`Constraint.armed`). Gravity
+    $g(\sin\gamma, -\cos\gamma)$ on every mass.
+    `args = {"m", "m_H", "a", "b", "g", "gamma", "ahead"}`.
+
+    The relabelling identifies {leg0, leg1, foot1} with {leg0, leg1, foot0}: the legs swapped
+    and the new stance foot moved to x = 0, so the gait is a periodic orbit of the stance mode.
+    Returns `(scene, relabel)`; build with
+    `contact_system(scene, ["foot0"], args, relabels=[relabel])`.
+    """
+
+    def hip(q):
+        return q[0:2]
+
+    def mass_of(i):
+        return (lambda q: q[2:4]) if i == 0 else (lambda q: q[4:6])
+
+    def foot(i):
+        def point(q, p):
+            h, m_i = hip(q), mass_of(i)(q)
+            return h + (p["a"] + p["b"]) / p["b"] * (m_i - h)
+
+        return point
+
+    def leg(i):
+        def length(t, q, p):
+            d = mass_of(i)(q) - hip(q)
+            return jnp.sum(d * d) - p["b"] ** 2
+
+        return Constraint(f"leg{i}", length, kind="bilateral")
+
+    def armed(t, q, p):
+        return foot(1)(q, p)[0] - foot(0)(q, p)[0] - p["ahead"]
+
+    def feet():
+        f0 = Constraint("foot0", lambda t, q, p: foot(0)(q, p)[1], tangent=lambda t, q, p: foot(0)(q, p)[0])
+        f1 = Constraint(
+            "foot1", lambda t, q, p: foot(1)(q, p)[1], tangent=lambda t, q, p: foot(1)(q, p)[0], armed=armed
+        )
+        return [f0, f1]
+
+    def mass(q, p):
+        return jnp.diag(jnp.stack([p["m_H"], p["m_H"], p["m"], p["m"], p["m"], p["m"]]) + 0.0 * q)
+
+    def forces(t, q, dq, p):
+        w = jnp.stack([p["m_H"], p["m_H"], p["m"], p["m"], p["m"], p["m"]]) * p["g"]
+        direction = jnp.stack([jnp.sin(p["gamma"]), -jnp.cos(p["gamma"])] * 3)
+        return w * direction + 0.0 * q
+
+    def swap(t, q, p):
+        x1 = foot(1)(q, p)[0]
+        shift = jnp.stack([x1, 0.0 * x1] * 3)
+        return jnp.concatenate([q[0:2], q[4:6], q[2:4]]) - shift
+
+    scene = Scene(
+        dim=6,
+        mass=mass,
+        forces=forces,
+        constraints=[leg(0), leg(1), *feet()],
+        q_range=((-0.5, 0.8, -0.6, 0.3, -0.6, 0.3), (0.5, 1.0, 0.6, 0.6, 0.6, 0.6)),
+        dq_range=(-2.0, 2.0),
+        names=("x_H", "z_H", "x_0", "z_0", "x_1", "z_1"),
+    )
+    return scene, Relabel(("leg0", "leg1", "foot1"), ("leg0", "leg1", "foot0"), q_map=swap)
+
+
+# Goswami, Thuilot and Espiau's walker on a 3 degree slope; the swing foot armed 5 cm ahead.
+COMPASS_GAIT_ARGS = {
+    "m": 5.0, "m_H": 10.0, "a": 0.5, "b": 0.5, "g": 9.81, "gamma": 3 * math.pi / 180, "ahead": 0.05,
+}
+
+
 def rod_scene(friction: tuple[str, ...] = ()) -> Scene:
     r"""A rod of mass m and length L falling in a vertical plane onto a floor, frictionless
     except at the ends named in `friction` (`("left",)`, `("left", "right")`), which have

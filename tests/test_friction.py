@@ -40,17 +40,20 @@ def block_args(theta):
     return {"g": jnp.asarray(G), "theta": jnp.asarray(theta), "mu": jnp.asarray(MU)}
 
 
-BLOCK = hj.contact_system(
-    BLOCK_SCENE, ["floor:stick", "floor:slip+"], args_values=[block_args(th) for th in THETAS]
-)
+@functools.cache
+def block_system():
+    """The block's system over the three slopes, built on first use (collection compiles nothing)."""
+    return hj.contact_system(
+        BLOCK_SCENE, ["floor:stick", "floor:slip+"], args_values=[block_args(th) for th in THETAS]
+    )
 
 
 def run_block(x0, mode, theta):
     # x0 and the mode as arrays: one compile serves every run.
     return hj.simulate(
-        BLOCK,
+        block_system(),
         jnp.asarray(x0),
-        jnp.asarray(BLOCK.mode_index(mode)),
+        jnp.asarray(block_system().mode_index(mode)),
         0.0,
         1.0,
         block_args(theta),
@@ -71,46 +74,47 @@ def test_block_modes_by_hand():
     # Sliding up the steep slope it stops and the stick force g sin > mu g cos sends it back
     # down (slip+ -> slip-). Slip+ never follows: the slope pulls towards -s. No lift-off:
     # lambda_n = g cos(theta) > 0.
-    edges = {(kind, src, tgt) for src, tgt, kind, _, _ in BLOCK.achievable}
+    edges = {(kind, src, tgt) for src, tgt, kind, _, _ in block_system().achievable}
     assert edges == {
         ("slip", "floor:stick", "floor:slip-"),
         ("stick", "floor:slip+", "floor:stick"),
         ("stick", "floor:slip-", "floor:stick"),
         ("reverse", "floor:slip+", "floor:slip-"),
     }
-    text = repr(BLOCK)
+    text = repr(block_system())
     assert "only for args_values [2]" in text and "pruned: lift-off floor" in text
 
 
 def test_block_sticks_on_a_shallow_slope():
     th = THETAS[1]
     sol = run_block([0.0, 0.0, 0.0, 0.0], "floor:stick", th)
-    assert mode_names(BLOCK, sol) == ["floor:stick"] and sol.status == hj.Status.T1_REACHED
+    assert mode_names(block_system(), sol) == ["floor:stick"] and sol.status == hj.Status.T1_REACHED
     np.testing.assert_allclose(sol.final_state, 0.0, atol=1e-12)
     # Statics: lambda_n = g cos(theta), lambda_t = g sin(theta) (columns floor, floor.t).
-    np.testing.assert_allclose(BLOCK.contact_forces(sol), [[G * math.cos(th), G * math.sin(th)]], atol=1e-10)
+    forces = block_system().contact_forces(sol)
+    np.testing.assert_allclose(forces, [[G * math.cos(th), G * math.sin(th)]], atol=1e-10)
 
 
 def test_block_slides_down_a_steep_slope():
     th = THETAS[2]
     sol = run_block([0.0, 0.0, 0.0, 0.0], "floor:stick", th)
-    assert mode_names(BLOCK, sol) == ["floor:stick", "floor:slip-"]
+    assert mode_names(block_system(), sol) == ["floor:stick", "floor:slip-"]
     np.testing.assert_allclose(sol.event_times[0], 0.0, atol=1e-12)
     a = G * (math.sin(th) - MU * math.cos(th))  # down the slope
     np.testing.assert_allclose(sol.final_state, [-a / 2, 0.0, -a, 0.0], atol=1e-9)
     # Slipping, the tangential column is the friction force mu lambda_n, up the slope.
     lam_n = G * math.cos(th)
-    np.testing.assert_allclose(BLOCK.contact_forces(sol), [[lam_n, MU * lam_n]], atol=1e-10)
+    np.testing.assert_allclose(block_system().contact_forces(sol), [[lam_n, MU * lam_n]], atol=1e-10)
 
 
 def test_block_stops_on_flat_ground_at_v0_over_mu_g():
     v0 = 1.0
     sol = run_block([0.0, 0.0, v0, 0.0], "floor:slip+", THETAS[0])
-    assert mode_names(BLOCK, sol) == ["floor:slip+", "floor:stick"]
+    assert mode_names(block_system(), sol) == ["floor:slip+", "floor:stick"]
     t_stop = v0 / (MU * G)  # deceleration mu g
     np.testing.assert_allclose(sol.event_times[0], t_stop, rtol=0, atol=1e-10)
     np.testing.assert_allclose(sol.final_state, [v0**2 / (2 * MU * G), 0.0, 0.0, 0.0], atol=1e-10)
-    np.testing.assert_allclose(BLOCK.contact_forces(sol), [[G, 0.0]], atol=1e-10)
+    np.testing.assert_allclose(block_system().contact_forces(sol), [[G, 0.0]], atol=1e-10)
 
 
 # ----------------------------------------------------------------------------- definitions
@@ -120,13 +124,13 @@ def test_mask_evaluation_equals_the_modes_own_functions():
     """The block's one masked evaluation per call (`FrictionEvaluation`: stick and slip modes,
     cone, stop and Painleve guards, impacts with their outcome) against its modes' and
     transitions' own functions, at states across the scene's ranges, at rest and in contact."""
-    assert BLOCK.form == "mask" and BLOCK.mode_indexed() is BLOCK.evaluation
+    assert block_system().form == "mask" and block_system().mode_indexed() is block_system().evaluation
     rng = np.random.default_rng(2)
     xs = rng.uniform([-1.0, -0.5, -3.0, -3.0], [1.0, 0.5, 3.0, 3.0], size=(48, 4))
     xs[:12, 1] = 0.0  # on the floor
     xs[:6, 3] = 0.0  # on it at rest (normal rate 0)
     xs[6:12, 2:] = 0.0  # at rest: the stop guards' choice is read
-    assert evaluations_agree(BLOCK, block_args(0.3), jnp.asarray(xs)) > 500
+    assert evaluations_agree(block_system(), block_args(0.3), jnp.asarray(xs)) > 500
 
 
 def test_negative_friction_coefficient_is_named():

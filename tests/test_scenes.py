@@ -27,7 +27,10 @@ def wedge_args(theta):
 
 
 THETAS = (math.pi / 4, math.pi / 3, 2 * math.pi / 3, 3 * math.pi / 4)
-WEDGES = {th: hj.contact_system(WEDGE, ["free"], wedge_args(th)) for th in THETAS}
+@functools.cache
+def wedge_system(theta):
+    """The wedge's system for one angle, built on first use (collection compiles nothing)."""
+    return hj.contact_system(WEDGE, ["free"], wedge_args(theta))
 
 
 def table(system):
@@ -66,8 +69,8 @@ def wedge_hand_table(theta):
 
 @pytest.mark.parametrize("theta", THETAS)
 def test_practice_problem_mode_table(theta):
-    assert table(WEDGES[theta]) == wedge_hand_table(theta)
-    text = repr(WEDGES[theta])
+    assert table(wedge_system(theta)) == wedge_hand_table(theta)
+    text = repr(wedge_system(theta))
     assert "contact sets built" in text and "pruned" in text
     if theta < math.pi / 2:
         assert "pruned set G+H" in text
@@ -85,7 +88,7 @@ def test_args_values_union_is_reported():
 def _wedge_run(x0, mode0, theta, saveat):
     # mode0 as an array: a Python int is a constant of the compiled program (one compile per value).
     return hj.simulate(
-        WEDGES[math.pi / 4],
+        wedge_system(math.pi / 4),
         jnp.asarray(x0),
         jnp.asarray(mode0),
         0.0,
@@ -100,7 +103,7 @@ def _wedge_run(x0, mode0, theta, saveat):
 def test_wedge_execution_and_contact_forces_by_hand():
     th = math.pi / 4
     sol = _wedge_run([-0.5, 0.2, 1.0, 0.0], 0, th, [0.1, 0.3, 0.6])
-    system = WEDGES[th]
+    system = wedge_system(th)
     names = [system.modes[int(m)].name for m in sol.epoch_modes[: int(sol.num_events) + 1]]
     assert names == ["free", "G", "H", "G"]
     # Fall of 0.2 onto the floor; slide at speed 1 to the corner at x = 0 (t = 0.5); up the ramp at
@@ -120,7 +123,7 @@ def test_unbuilt_contact_set_ends_with_a_status_naming_it():
     # contact set this system does not have.
     sol = _wedge_run([-0.5, 0.0, 1.0, 0.0], 1, 2 * math.pi / 3, [0.1, 0.3, 0.6])
     assert sol.status == hj.Status.BLOCKED
-    assert WEDGES[math.pi / 4].modes[int(sol.final_mode)].name == "unbuilt: G+H"
+    assert wedge_system(math.pi / 4).modes[int(sol.final_mode)].name == "unbuilt: G+H"
     np.testing.assert_allclose(sol.final_time, 0.5, atol=1e-9)
 
 
@@ -419,7 +422,7 @@ def test_mask_evaluation_equals_the_modes_own_functions(name):
         system, args = _triangle_system(), {"g": jnp.asarray(G), "r": jnp.asarray(1.0)}
         assert any(sp.kind == SELECTED for slots in system.evaluation.slots for sp in slots)
     elif name == "wedge":
-        system, args = WEDGES[3 * math.pi / 4], wedge_args(3 * math.pi / 4)
+        system, args = wedge_system(3 * math.pi / 4), wedge_args(3 * math.pi / 4)
     else:  # relabelled spokes, a sticking foot (a tangent without friction)
         system, args, _, _ = wheel()
         assert system.evaluation.relabel_maps

@@ -54,8 +54,11 @@ from .._definition.system import Mode, Transition
 from .indexed import _by_mode
 from .mechanics import (
     _INDEPENDENT,
+    armed_values,
+    constraint_gaps,
     impact,
     impact_candidate,
+    impact_gaps,
     impact_map,
     independence,
     kinematics,
@@ -72,9 +75,9 @@ from .scene import (
     _identity,
     _range,
     _releases,
-    _search,
     _terminal_domain,
     _terminal_flow,
+    run_search,
     witness_text,
 )
 
@@ -241,15 +244,31 @@ def consistency(scene: Scene, kin, mu, rows_mask, sign):
     return small_linalg.det(coupled) - PAINLEVE_RATIO * small_linalg.det(frictionless)
 
 
+def stop_ties(kin, ddq, tan, dq):
+    r"""(K, K): `[j, i]` true where contacts j and i stop at one instant: their sliding speeds
+    $v$ and accelerations $a$ (tangent rows) give the same time to zero, $v_i a_j = v_j a_i$
+    within `_SPEED_TIE` $(1 + \max|\dot q|)(|a_i| + |a_j|)$. Time-to-zero rather than
+    speed: at a state past the instant (the end of an integrator's step) two contacts that
+    stop together have equal times, not speeds near 0."""
+    tan = jnp.asarray(tan, kin.J.dtype)
+    v, a = tan @ kin.adot, tan @ (kin.J @ ddq + kin.bias)
+    cross = jnp.abs(v[None, :] * a[:, None] - v[:, None] * a[None, :])
+    scale = _SPEED_TIE * (1.0 + jnp.max(jnp.abs(dq))) * (jnp.abs(a)[:, None] + jnp.abs(a)[None, :])
+    return cross <= scale
+
+
 def stop_decision(scene: Scene, state: tuple, j: int, kin, mu, dq):
     """Where slipping contact j of `state` stops: (the index in `stop_subsets(state, j)` of the
-    other slipping contacts stopped with it, their sliding speeds within `_SPEED_TIE` of 0;
-    whether all of those and j, stuck, have their forces in their cones)."""
+    other slipping contacts stopped with it (`stop_ties`); whether all of those and j, stuck,
+    have their forces in their cones)."""
     tan = _layout(scene)[2]
     row = [int(np.argmax(tan[i])) for i in range(len(state))]
     others = others_slipping(state, j)
-    scale = 1.0 + jnp.max(jnp.abs(dq))
-    stopped = [jnp.abs(kin.adot[row[i]]) <= _SPEED_TIE * scale for i in others]
+    _, rows_now, sign_now = _state_arrays(scene, state)
+    ddq = friction_acceleration(scene, kin, mu, jnp.asarray(rows_now, kin.J.dtype),
+                                jnp.asarray(sign_now, kin.J.dtype), bool(rows_now.sum() > scene.dim))[0]
+    ties = stop_ties(kin, ddq, tan, dq)
+    stopped = [ties[j, i] for i in others]
     which, inside = jnp.array(-1), jnp.array(False)
     for c, members in enumerate(stop_subsets(state, j)):
         match = jnp.all(jnp.stack([stopped[others.index(i)] == (i in members) for i in others] + [True]))
@@ -434,7 +453,9 @@ class _FrictionImpact(eqx.Module):
             offsets[c] = offset
             offset += 2 ** len(fr)
         source = {i for i, st in enumerate(self.source) if st is not None} | {self.k}
-        gap_rows = np.asarray([r < K and o in source for r, o in enumerate(owners)])
+        # The unilateral constraints' gap rows: a joint's impulse has either sign.
+        uni = _layout(self.scene)[4]
+        gap_rows = np.asarray([r < K and o in source and uni[o] > 0 for r, o in enumerate(owners)])
         return held, bits, offsets, gap_rows
 
     def outcome_from(self, kin, e):
@@ -466,10 +487,11 @@ class _FrictionImpact(eqx.Module):
 
     def guard(self, ids: tuple):
         """a_k where the outcome is one of `ids` (-1: none valid), positive elsewhere."""
-        k_fn = self.scene.constraints[self.k].fn
+        n = self.scene.dim
 
         def g(t, x, args):
-            a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
+            gaps = constraint_gaps(self.scene, t, x[:n], args)
+            a = impact_gaps(self.scene, t, x[:n], args, gaps)[self.k]
             got = self.outcome_id(*jax.lax.stop_gradient((t, x, args)))
             return selection_guard(a, jnp.any(jnp.stack([got == i for i in ids])))
 
@@ -520,6 +542,8 @@ def _friction_queries(scene: Scene, margin: float):
         mu = friction_coefficients(scene, args, dt)
         kin = kinematics(scene, fns, t, q, dq, args)
         a, J, rate, bias = kin.gap[:K], kin.J, kin.adot, kin.bias
+        open_gap = impact_gaps(scene, t, q, args, kin.gap)
+        armed = armed_values(scene, t, q, args)
         ddq, lam = friction_acceleration(scene, kin, mu, Q.rows, Q.sign, "search")
         lam_n, lam_t, v_t = lam[:K], tan @ lam, tan @ rate
         acc_t = tan @ (J @ ddq + bias)
@@ -542,7 +566,8 @@ def _friction_queries(scene: Scene, margin: float):
 
         ineq = jnp.concatenate(
             [
-                where(uni * (1 - Q.held) * (1 - Q.hit), a),
+                where(uni * (1 - Q.held) * (1 - Q.hit), open_gap),
+                where(Q.hit, armed),
                 where(slipping * (1 - stopping), s * v_t),
                 where(uni * Q.held * Q.flowing * (1 - Q.lift), lam_n),
                 where(stuck * Q.flowing * (1 - Q.unstick), mu * lam_n - jnp.abs(lam_t)),
@@ -597,12 +622,7 @@ def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
 
 def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
     eq, ineq = _friction_queries(scene, margin)
-    count = len(queries)
-    padded = max(8, 1 << max(count - 1, 0).bit_length())  # powers of two: few compiled sizes
-    queries = list(queries) + [queries[0]] * (padded - count)
-    stacked = jtu.tree_map(lambda *xs: jnp.stack(xs), *queries)
-    out = _search(eq, ineq, samples[0], samples[1], stacked, args_batch, tol, num_starts)
-    return jtu.tree_map(lambda a: np.asarray(a)[:count], out)
+    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
 
 
 # ----------------------------------------------------------------------------- the system
@@ -864,30 +884,32 @@ class FrictionEvaluation(ModeIndexed):
         row = [int(np.argmax(tan[i])) for i in range(K)]
         kin = self._kinematics(t, y, args)
         mu = friction_coefficients(self.scene, args, y.dtype)
-        (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
-        gaps, rate = kin.gap[:K], kin.adot
+        (ddq, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
+        gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
         slots = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs]
 
         def speed(sp):
             return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
 
-        # The discrete choices, without gradients, each once, where a guard reading it is <= 0.
-        kin_sg, mu_sg, y_sg, args_sg = lax.stop_gradient((kin, mu, y, args))
-        impacts = list(dict.fromkeys(sp.impact for _, sp in slots if sp.kind == "impact"))
-        stops = list(dict.fromkeys((sp.state, sp.j) for _, sp in slots if sp.kind == "stop"))
+        # The discrete choices of the current mode (an impact's outcome per constraint, a stop's
+        # decision per slipping contact), each one vmapped solve without gradients, computed
+        # only where a guard of the current mode that reads one is at or below zero.
+        imp_t, stop_t = self._impact_tables(), self._stop_tables()
+        has_impact = _by_mode(mode, imp_t["present"].any(axis=2).astype(float), y.dtype) > 0
+        has_stop = _by_mode(mode, stop_t["present"].any(axis=2).astype(float), y.dtype) > 0
+        slipping = sign != 0
+        speeds = sign * (jnp.asarray(tan, y.dtype) @ rate)
+        need = jnp.any(has_impact & (gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
+
+        kin_sg, mu_sg, y_sg, args_sg, ddq_sg = lax.stop_gradient((kin, mu, y, args, ddq))
 
         def choices():
-            got = [imp.outcome_from(kin_sg, imp.restitution(args_sg, y.dtype)) for imp in impacts]
-            dec = [stop_decision(self.scene, S, j, kin_sg, mu_sg, y_sg[n:]) for S, j in stops]
-            return jnp.asarray(got + [0], jnp.int32), jnp.asarray([w for w, _ in dec] + [0]), \
-                jnp.asarray([i for _, i in dec] + [False])
+            got = self._impact_outcomes(mode, kin_sg, args_sg, imp_t, y.dtype)
+            which, inside = self._stop_decisions(mode, kin_sg, mu_sg, y_sg[n:], ddq_sg, stop_t, y.dtype)
+            return got, which, inside
 
-        need = [(mode == m) & (gaps[sp.j] <= 0) for m, sp in slots if sp.kind == "impact"]
-        need += [(mode == m) & (speed(sp) <= 0) for m, sp in slots if sp.kind == "stop"]
-        if need:
-            none = (jnp.full(len(impacts) + 1, -1, jnp.int32), jnp.full(len(stops) + 1, -1),
-                    jnp.zeros(len(stops) + 1, bool))
-            got, which, inside = lax.cond(eqxi.unvmap_any(jnp.any(jnp.stack(need))), choices, lambda: none)
+        none = (jnp.full(K, -1, jnp.int32), jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool))
+        got, which, inside = lax.cond(eqxi.unvmap_any(need), choices, lambda: none)
         consistency_value = None
         if any(sp.kind == "painleve" for _, sp in slots):
             consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
@@ -896,20 +918,108 @@ class FrictionEvaluation(ModeIndexed):
             if sp.kind == "painleve":
                 return consistency_value
             if sp.kind == "impact":
-                o = got[impacts.index(sp.impact)]
+                o = got[sp.j]
                 return selection_guard(gaps[sp.j], jnp.any(jnp.stack([o == i for i in sp.ids])))
             if sp.kind == "lift":
                 return lam[sp.j] + sp.offset
             if sp.kind == "cone":
                 return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
             if sp.kind == "stop":
-                d = stops.index((sp.state, sp.j))
-                go = stop_goes(which[d], inside[d], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
+                go = stop_goes(which[sp.j], inside[sp.j], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
                 return selection_guard(speed(sp), go)
             return jnp.asarray(sp.offset, y.dtype)
 
         rows = [[value(sp) for sp in specs] for specs in self.slots]
         return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+
+    def _impact_tables(self) -> dict:
+        """Per (mode, impacting constraint k) with an impact slot, its candidates padded to C
+        (`_FrictionImpact.outcome_tables`): held rows (M, K, C, R), present (M, K, C), the
+        outcome code's bits (M, K, C, K) and offsets (M, K, C), the gap rows (M, K, R)."""
+        K, R, M = len(self.scene.constraints), len(_layout(self.scene)[0]), len(self.slots)
+        impacts = {(m, sp.j): sp.impact for m, specs in enumerate(self.slots) for sp in specs
+                   if sp.kind == "impact"}
+        C = max((len(imp.candidates) for imp in impacts.values()), default=0)
+        t = dict(held=np.zeros((M, K, C, R)), present=np.zeros((M, K, C), bool), bits=np.zeros((M, K, C, K)),
+                 offsets=np.zeros((M, K, C)), gap_rows=np.zeros((M, K, R), bool))
+        for (m, k), imp in impacts.items():
+            held, bits, offsets, gap_rows = imp.outcome_tables()
+            c = len(imp.candidates)
+            t["held"][m, k, :c], t["present"][m, k, :c] = held, True
+            t["bits"][m, k, :c], t["offsets"][m, k, :c], t["gap_rows"][m, k] = bits, offsets, gap_rows
+        return t
+
+    def _impact_outcomes(self, mode, kin, args, t, dtype):
+        """(K,): the outcome (`_FrictionImpact.outcome_from`) of an impact of each constraint in
+        `mode`, -1 where none solves it or none is built; one vmapped solve."""
+        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
+        C = t["held"].shape[2]
+        if C == 0:
+            return jnp.full(K, -1, jnp.int32)
+        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
+        held, bits = pick["held"].reshape(K, C, R), pick["bits"].reshape(K, C, K)
+        present, offsets = pick["present"].reshape(K, C) > 0, pick["offsets"].reshape(K, C)
+        gap_rows = pick["gap_rows"].reshape(K, R) > 0
+        e_all = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
+        tan = jnp.asarray(_layout(self.scene)[2], dtype)
+        every = jnp.ones(R, bool)
+
+        def one(k_hit, h, p, b, off, g):
+            e = jnp.concatenate([k_hit * e_all, jnp.zeros(R - K, dtype)])
+            ok, rates = jax.vmap(lambda hc: impact_candidate(kin, hc, e, every, g))(h)
+            ok = ok & p
+            code = jnp.sum(b * ((rates @ tan.T) < 0), axis=1)
+            c = jnp.argmax(ok)
+            return jnp.where(jnp.any(ok), off[c] + code[c], -1).astype(jnp.int32)
+
+        return jax.vmap(one)(jnp.eye(K, dtype=dtype), held, present, bits, offsets, gap_rows)
+
+    def _stop_tables(self) -> dict:
+        """Per (mode, slipping contact j) with a stop slot, the candidate sets of other contacts
+        stopped with it (`stop_subsets`), padded to C: present (M, K, C), members (M, K, C, K),
+        others (M, K, K), and the stuck state's rows, signs and least-norm flag."""
+        K, R, M = len(self.scene.constraints), len(_layout(self.scene)[0]), len(self.slots)
+        stops = {(m, sp.j): sp.state for m, specs in enumerate(self.slots) for sp in specs
+                 if sp.kind == "stop"}
+        C = max((len(stop_subsets(S, j)) for (_, j), S in stops.items()), default=0)
+        t = dict(present=np.zeros((M, K, C), bool), members=np.zeros((M, K, C, K)),
+                 others=np.zeros((M, K, K)), rows=np.zeros((M, K, C, R)), sign=np.zeros((M, K, C, K)),
+                 least=np.zeros((M, K, C)))
+        for (m, j), S in stops.items():
+            t["others"][m, j, list(others_slipping(S, j))] = 1.0
+            for c, members in enumerate(stop_subsets(S, j)):
+                stuck = tuple(STICK if i in (j, *members) else st for i, st in enumerate(S))
+                _, rows_mask, sign = _state_arrays(self.scene, stuck)
+                t["present"][m, j, c] = True
+                t["members"][m, j, c, [j, *members]] = 1.0
+                t["rows"][m, j, c], t["sign"][m, j, c] = rows_mask, sign
+                t["least"][m, j, c] = float(rows_mask.sum() > self.scene.dim)
+        return t
+
+    def _stop_decisions(self, mode, kin, mu, dq, ddq, t, dtype):
+        """(K,) each: `stop_decision` of each slipping contact j of `mode` (the index of the set
+        of other contacts stopped with it, and whether all of those and j, stuck, are in their
+        cones); one vmapped friction solve."""
+        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
+        C = t["present"].shape[2]
+        if C == 0:
+            return jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool)
+        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
+        present, members = pick["present"].reshape(K, C) > 0, pick["members"].reshape(K, C, K) > 0
+        others, rows_t = pick["others"].reshape(K, K) > 0, pick["rows"].reshape(K, C, R)
+        sign_t, least_t = pick["sign"].reshape(K, C, K), pick["least"].reshape(K, C)
+        tan = jnp.asarray(_layout(self.scene)[2], dtype)
+        stopped = stop_ties(kin, ddq, tan, dq)  # (j, i)
+        lam = jax.vmap(jax.vmap(lambda r, s, f: friction_acceleration(self.scene, kin, mu, r, s, f)[1]))(
+            rows_t, sign_t, least_t
+        )
+        lam_n, lam_t = lam[..., :K], lam @ tan.T
+        ok = jnp.all(~members | (jnp.abs(lam_t) <= mu[None, None, :] * lam_n), axis=-1)
+        # A candidate matches where exactly its other members are stopped (j itself is a member).
+        match = jnp.all(~others[:, None, :] | (stopped[:, None, :] == members), axis=-1) & present
+        which = jnp.where(jnp.any(match, axis=1), jnp.argmax(match, axis=1), -1)
+        inside = jnp.take_along_axis(ok, jnp.maximum(which, 0)[:, None], axis=1)[:, 0] & (which >= 0)
+        return which.astype(jnp.int32), inside
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n, K = self.scene.dim, len(self.scene.constraints)

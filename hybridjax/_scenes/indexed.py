@@ -22,12 +22,12 @@ from jax import lax
 from .._definition.indexed import ModeIndexed
 from .._definition.kernels import dispatch, select_by_mode
 from .mechanics import (
-    acceleration,
+    impact_gaps,
     impact_map,
     kinematics,
     release_choice,
-    restrict,
     rows,
+    schur_solve,
     selection_guard,
 )
 
@@ -39,7 +39,8 @@ class ReleaseChoice(eqx.Module):
     """An impact's release candidates on the rows of all the scene's constraints, as
     `mechanics.release_choice` takes them: per candidate the rows held, the impacting
     constraint `hit` (its restitution on its gap row), the rows of the constraints involved
-    (`involved`: their indices, in the order of the impact's own rows) and the gap rows."""
+    (`involved`: their indices, in the order of the impact's own rows) and the gap rows of the
+    unilateral constraints involved (impulses >= 0 and released rates >= 0 are asked there)."""
 
     held: tuple = eqx.field(static=True)
     hit: int = eqx.field(static=True)
@@ -102,6 +103,29 @@ class ContactEvaluation(ModeIndexed):
         n = self.scene.dim
         return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
 
+    def _selection(self, mode, dtype):
+        """(S, m): S (P, rows) picks the rows `mode` holds (P: the most rows any mode holds),
+        m (P,) marks the entries in use. A mode's solve is on its own rows: its size is P,
+        not the scene's number of rows."""
+        _, owners = self._rows()
+        held = [[r for r, o in enumerate(owners) if s is not None and o in s] for s in self.mode_sets]
+        P = max(map(len, held), default=0)
+        table = np.zeros((len(held), P, len(owners)))
+        for m, rs in enumerate(held):
+            table[m, np.arange(len(rs)), rs] = 1.0
+        S = _by_mode(mode, table.reshape(len(held), -1), dtype).reshape(P, len(owners))
+        return S, jnp.sum(S, axis=1)
+
+    def _acceleration(self, mode, kin, dtype):
+        r"""$\ddot q$ and the row forces $\lambda$ (all rows, 0 where not held) of `mode`
+        (`mechanics.acceleration` on the mode's rows, `_selection`)."""
+        S, m = self._selection(mode, dtype)
+        if S.shape[0] == 0:
+            return kin.Minv_f, jnp.zeros(kin.J.shape[0], dtype)
+        ddq, mu = schur_solve(kin.Minv_f, kin.W @ S.T, S @ kin.G @ S.T, S @ kin.J, -(S @ kin.bias), m,
+                              self.least_norm)
+        return ddq, S.T @ mu
+
     def _restitution(self, args, dtype) -> jax.Array:
         """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
         e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
@@ -111,25 +135,25 @@ class ContactEvaluation(ModeIndexed):
     def flow(self, mode, t, y, args) -> jax.Array:
         n = self.scene.dim
         kin = self._kinematics(t, y, args)
-        ddq, _ = acceleration(kin, self._mode_mask(mode, y.dtype), self.least_norm)
+        ddq, _ = self._acceleration(mode, kin, y.dtype)
         terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
         return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
 
     def watch(self, mode, t, y, args) -> jax.Array:
         K = len(self.scene.constraints)
         kin = self._kinematics(t, y, args)
-        _, lam = acceleration(kin, self._mode_mask(mode, y.dtype), self.least_norm)
-        gaps = kin.gap[:K]
-        # Every impact's choice in one vmapped call, whichever slots read it, and only where
-        # one of the current mode's selection guards is at or below zero, where it is read
-        # (`selection_guard`): under `jax.vmap`, where one execution needs it.
-        selected = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs if sp.kind == SELECTED]
-        choices = list(dict.fromkeys(
-            (sp.choice.held, sp.choice.hit, sp.choice.involved, sp.choice.gap_rows) for _, sp in selected))
-        if choices:
-            need = jnp.any(jnp.stack([(mode == m) & (gaps[sp.index] <= 0) for m, sp in selected]))
-            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(kin, choices, args, y.dtype),
-                             lambda: jnp.full((len(choices),), -1, jnp.int32))
+        _, lam = self._acceleration(mode, kin, y.dtype)
+        gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
+        # Every impact's choice of the current mode in one vmapped solve, and only where one of
+        # its selection guards is at or below zero, where it is read (`selection_guard`):
+        # under `jax.vmap`, where one execution needs it.
+        held, present, gap_rows, involved = self._choice_tables()
+        if present.any():
+            has = _by_mode(mode, present.any(axis=2).astype(float), y.dtype) > 0
+            need = jnp.any(has & (gaps <= 0))
+            kin_sg, args_sg = lax.stop_gradient((kin, args))
+            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(mode, kin_sg, args_sg, y.dtype),
+                             lambda: jnp.full((K,), -1, jnp.int32))
         values = [gaps, lam]
         base = K + lam.shape[0]
         source, offset = [], []
@@ -141,8 +165,7 @@ class ContactEvaluation(ModeIndexed):
                 elif spec.kind == FORCE:
                     src_row.append(K + spec.index)
                 elif spec.kind == SELECTED:
-                    ch = spec.choice
-                    pick = picks[choices.index((ch.held, ch.hit, ch.involved, ch.gap_rows))]
+                    pick = picks[spec.choice.hit]
                     taken = jnp.any(jnp.stack([pick == c for c in spec.chosen] + [False]))
                     values.append(selection_guard(gaps[spec.index], taken)[None])
                     src_row.append(base)
@@ -158,25 +181,42 @@ class ContactEvaluation(ModeIndexed):
                 for src, off in zip(source, offset, strict=True)]
         return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
 
-    def _choices(self, kin, choices, args, dtype):
-        """`release_choice` of each impact in `choices` ((held, hit, involved, gap_rows) tuples)
-        at the state of `kin`, without gradients: (P,) candidate indices. Each on the rows of
-        its own constraints (`restrict`: a few rows, not all the scene's), its candidates one
-        vmapped solve."""
-        if not choices:
-            return jnp.zeros((0,), jnp.int32)
-        e = lax.stop_gradient(self._restitution(args, dtype))
-        kin = lax.stop_gradient(kin)
-        picks = []
-        for held, hit, involved, gap_rows in choices:
-            idx = list(involved)
-            sub = restrict(kin, idx)
-            held_sub = jnp.asarray([[h[r] for r in idx] for h in held], dtype)
-            e_sub = jnp.stack([e[r] if r == hit else jnp.zeros((), dtype) for r in idx])
-            gaps_sub = jnp.asarray([gap_rows[r] for r in idx])
-            picks.append(release_choice(sub, held_sub, e_sub, jnp.ones(len(idx), bool), gaps_sub,
-                                        self.least_norm))
-        return jnp.stack(picks)
+    def _choice_tables(self):
+        """The release candidates of every (mode, impacting constraint) that a selection guard
+        reads, padded to C candidates: held rows (modes, K, C, rows), present (modes, K, C), and
+        the gap rows and rows involved (modes, K, rows) (`ReleaseChoice`)."""
+        K, R = len(self.scene.constraints), len(self._rows()[0])
+        choices = {(m, sp.choice.hit): sp.choice for m, specs in enumerate(self.slots) for sp in specs
+                   if sp.kind == SELECTED}
+        C = max((len(ch.held) for ch in choices.values()), default=0)
+        M = len(self.slots)
+        held, present = np.zeros((M, K, C, R)), np.zeros((M, K, C), bool)
+        gap_rows, involved = np.zeros((M, K, R), bool), np.zeros((M, K, R), bool)
+        for (m, k), ch in choices.items():
+            held[m, k, : len(ch.held)] = ch.held
+            present[m, k, : len(ch.held)] = True
+            gap_rows[m, k] = ch.gap_rows
+            involved[m, k, list(ch.involved)] = True
+        return held, present, gap_rows, involved
+
+    def _choices(self, mode, kin, args, dtype):
+        """`release_choice` of the impact of each constraint k in `mode` at the state of `kin`
+        (given without gradients): (K,) candidate indices (-1 where none solves it, or none is read).
+        The K impacts and their candidates are one vmapped solve on the scene's rows."""
+        K, R = len(self.scene.constraints), len(self._rows()[0])
+        held, present, gap_rows, involved = self._choice_tables()
+        C = held.shape[2]
+        held = _by_mode(mode, held.reshape(held.shape[0], -1), dtype).reshape(K, C, R)
+        present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C) > 0
+        gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R) > 0
+        involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R) > 0
+        e = self._restitution(args, dtype)
+        hit = jnp.eye(K, R, dtype=dtype)  # constraint k's restitution acts on its gap row alone
+
+        def one(k_hit, h, p, g, i):
+            return release_choice(kin, h, k_hit * e, i, g, self.least_norm, present=p)
+
+        return jax.vmap(one)(hit, held, present, gap_rows, involved)
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n = self.scene.dim

@@ -160,15 +160,18 @@ def impact_map(kin: Kinematics, held, e, least_norm=False):
 
 
 def gram_independence(G, held):
-    r"""$\min_j d_j / \max_j G_{jj}$, $d_j$ the pivots ($L_{jj}^2$) of the Cholesky factor of
-    the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where none): 0 up to rounding, or
-    NaN, for dependent constraints, and never below $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a
-    pivot is at least the least eigenvalue, a diagonal entry at most the greatest). Elementwise,
-    as `kkt_solve` (no LAPACK call per lane)."""
+    r"""$\min_j d_j / \max_j G_{jj}$ over the held rows $j$, $d_j$ the pivots ($L_{jj}^2$) of
+    the Cholesky factor of the Gram matrix $G = J M^{-1} J^\top$ on the held rows (1 where
+    none): 0 up to rounding, or NaN, for dependent constraints, and never below
+    $\lambda_{\min}(G) / \lambda_{\max}(G)$ (a pivot is at least the least eigenvalue, a
+    diagonal entry at most the greatest). Elementwise, as `kkt_solve` (no LAPACK call per lane)."""
     G = jnp.where((held[:, None] > 0) & (held[None, :] > 0), G, 0.0) + jnp.diag(1.0 - held)
     L = small_linalg.cholesky(0.5 * (G + G.T))
     pivots = jnp.stack([L[j][j] ** 2 for j in range(len(L))])
-    return jnp.min(pivots) / jnp.max(jnp.diag(G))
+    on = held > 0
+    # Over the held rows alone: the rows not held (pivot 1) do not change the ratio.
+    ratio = jnp.min(jnp.where(on, pivots, jnp.inf)) / jnp.max(jnp.where(on, jnp.diag(G), 0.0))
+    return jnp.where(jnp.any(on), ratio, 1.0)
 
 
 _INDEPENDENT = 1e-9  # `gram_independence` below this: dependent
@@ -210,6 +213,34 @@ def selection_guard(a, taken):
     included, one such guard, so exactly one of them crosses zero where $a$ does; while $a > 0$
     none depends on the choice, so the choice is needed only where some $a \le 0$."""
     return jnp.where((a > 0) | taken, a, jnp.abs(a) + 1.0)
+
+
+def constraint_gaps(scene, t, q, args):
+    """(K,): the gaps $a_k(t, q)$ of the scene's constraints."""
+    return _gaps(tuple(c.fn for c in scene.constraints), jnp.asarray(t, q.dtype), q, args)
+
+
+def impact_gaps(scene, t, q, args, gaps):
+    r"""The values of the impact guards: the gaps $a_k$ of the scene's constraints (`gaps`, the
+    first K rows), with $\max(a_k, -c_k)$ for a contact armed only where $c_k(t, q) \ge 0$
+    (`Constraint.armed`): $\le 0$ exactly where the gap is closed and the contact armed."""
+    out = []
+    for k, c in enumerate(scene.constraints):
+        if c.armed is None:
+            out.append(gaps[k])
+        else:
+            armed = jnp.reshape(jnp.asarray(c.armed(jnp.asarray(t, q.dtype), q, args), q.dtype), ())
+            out.append(jnp.maximum(gaps[k], -armed))
+    return jnp.stack(out) if out else gaps[:0]
+
+
+def armed_values(scene, t, q, args):
+    """(K,): $c_k(t, q)$ of each armed contact, 1 for the others."""
+    return jnp.stack([
+        jnp.ones((), q.dtype) if c.armed is None
+        else jnp.reshape(jnp.asarray(c.armed(jnp.asarray(t, q.dtype), q, args), q.dtype), ())
+        for c in scene.constraints
+    ])
 
 
 def constrained_acceleration(scene, fns, mask, t, q, dq, args, least_norm=False):

@@ -62,8 +62,11 @@ from .mechanics import (
     _INDEPENDENT,
     _row_mask,
     acceleration,
+    armed_values,
     constrained_acceleration,
+    constraint_gaps,
     impact,
+    impact_gaps,
     impact_map,
     independence,
     kinematics,
@@ -119,6 +122,13 @@ class Constraint(eqx.Module):
       of a unilateral contact with a `tangent`: the contact then sticks ($\dot b = 0$ held,
       $|\lambda_t| \le \mu \lambda_n$) or slips ($\lambda_t = -\mu\, \mathrm{sign}(\dot b)
       \lambda_n$), each a mode (`"name:stick"`, `"name:slip+"`, `"name:slip-"`); see `contact_system`.
+    - `armed`: optional `armed(t, q, args) -> scalar` $c$ of a unilateral contact: it can be hit
+      only where $c \ge 0$. Its impact guard is $\max(a, -c) \le 0$ (the gap closed while the
+      contact is armed); where $c < 0$ the gap may be negative (a walker's swing foot passing
+      through the ground at mid-stance) and the contact is not watched. The point search asks
+      an impact's witness for $c \ge 0$, and the other open contacts for $\max(a, -c) \ge 0$.
+      Choose $c$ so that the gap is open where $c$ turns positive (the swing foot ahead of the
+      stance foot by a little): a contact armed with its gap closed is hit at once.
 
     !!! Example
 
@@ -133,6 +143,7 @@ class Constraint(eqx.Module):
     restitution: float | Callable | None = eqx.field(static=True, default=None)
     tangent: Callable | None = eqx.field(static=True, default=None)
     friction: float | Callable | None = eqx.field(static=True, default=None)
+    armed: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not isinstance(self.name, str) or not self.name or "+" in self.name:
@@ -146,6 +157,10 @@ class Constraint(eqx.Module):
         if self.tangent is not None and not callable(self.tangent):
             raise TypeError(f"Constraint '{self.name}': `tangent` must be callable or None.")
         _check_friction(self)
+        if self.armed is not None and (self.kind != UNILATERAL or not callable(self.armed)):
+            raise ValueError(
+                f"Constraint '{self.name}': `armed` must be a callable of a unilateral constraint."
+            )
         e = self.restitution
         if e is not None and self.kind == BILATERAL:
             raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
@@ -278,7 +293,7 @@ class Scene(eqx.Module):
         if (s := shape(self.forces, t, q, q)) != (n,):
             raise ValueError(f"Scene: `forces` returns shape {s}, expected {(n,)}.")
         for c in self.constraints:
-            for role, fn in (("fn", c.fn), ("tangent", c.tangent)):
+            for role, fn in (("fn", c.fn), ("tangent", c.tangent), ("armed", c.armed)):
                 if fn is not None and (s := shape(fn, t, q)) not in ((), (1,)):
                     raise ValueError(f"Constraint '{c.name}': `{role}` returns shape {s}, expected a scalar.")
 
@@ -397,7 +412,9 @@ class _Impact(eqx.Module):
         num_rows = len(self.fns())
         kin = kinematics(self.scene, self.fns(), t, x[:n], x[n:], args)
         held = jnp.stack([self.held(c, dtype) for c in range(len(self.candidates))])
-        gap_rows = jnp.arange(num_rows) < len(self.order)
+        # The unilateral constraints' gap rows: a joint's impulse has either sign.
+        gap_rows = jnp.asarray([r < len(self.order) and self.scene.constraints[o].kind == UNILATERAL
+                                for r, o in enumerate(rows(self.scene, self.order)[1])])
         return release_choice(kin, held, self._e(args, dtype), jnp.ones(num_rows, bool), gap_rows,
                               self.least_norm)
 
@@ -413,17 +430,26 @@ class _Impact(eqx.Module):
             held=tuple(tuple(float(o in self.order and o not in R) for o in owners) for R in self.candidates),
             hit=self.k,
             involved=tuple(index),
-            gap_rows=tuple(o in self.order and r < K for r, o in enumerate(owners)),
+            gap_rows=tuple(
+                o in self.order and r < K and self.scene.constraints[o].kind == UNILATERAL
+                for r, o in enumerate(owners)
+            ),
         )
 
     def guard(self, chosen: tuple):
-        """a_k where the selected candidate is in `chosen`, positive elsewhere."""
-        k_fn = self.scene.constraints[self.k].fn
+        """a_k (`mechanics.impact_gaps`: max(a_k, -c_k) for an armed contact) where the selected
+        candidate is in `chosen`, positive elsewhere."""
+        n, k = self.scene.dim, self.k
+
+        def gap(t, x, args):
+            q = x[:n]
+            return impact_gaps(self.scene, t, q, args, constraint_gaps(self.scene, t, q, args))[k]
+
         if set(range(len(self.candidates))) <= set(chosen):
-            return lambda t, x, args: k_fn(t, x[: self.scene.dim], args)
+            return gap
 
         def g(t, x, args):
-            a = jnp.reshape(jnp.asarray(k_fn(t, x[: self.scene.dim], args), x.dtype), ())
+            a = gap(t, x, args)
             # Which outcome holds is a discrete choice: no derivative flows through it.
             sel = self.select(*jax.lax.stop_gradient((t, x, args)))
             return selection_guard(a, jnp.any(jnp.stack([sel == c for c in chosen] + [False])))
@@ -514,6 +540,8 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         held_rows = _row_mask(owners, Q.held, x.dtype)
         kin = kinematics(scene, fns, t, q, dq, args)
         a, adot = kin.gap, kin.adot
+        open_gap = impact_gaps(scene, t, q, args, a)
+        armed = armed_values(scene, t, q, args)
         _, lam = acceleration(kin, held_rows, least_norm)
         e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
         e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
@@ -525,7 +553,8 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         adot = adot_gap
         one = jnp.ones_like(a)
         ineq = [
-            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, a, one),
+            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, open_gap, one),
+            jnp.where(Q.hit > 0, armed, one),
             jnp.where((uni * Q.held * Q.flowing) > 0, lam, one),
             jnp.where(Q.lift > 0, -lam - margin, one),
             jnp.where(Q.hit > 0, -adot - margin, one),
@@ -543,18 +572,51 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
 
 def _run_queries(scene, queries, args_batch, samples, margin, least_norm, tol, num_starts):
     """find_point for every (query, args value): Witness with leading axes (Q, V)."""
-    ts, xs = samples
     eq, ineq = _query_functions(scene, margin, least_norm)
-    Q = len(queries)
-    padded = max(8, 1 << max(Q - 1, 0).bit_length())  # powers of two: few distinct compiled sizes
-    queries = list(queries) + [queries[0]] * (padded - Q)
-    stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries)
-    out = _search(eq, ineq, ts, xs, stacked, args_batch, tol, num_starts)
-    return jtu.tree_map(lambda a: np.asarray(a)[:Q], out)
+    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
 
 
-@eqx.filter_jit
-def _search(eq, ineq, ts, xs, queries, args_batch, tol, num_starts):
+# Queries per call of the compiled search: every call has this many (the last one padded), so a
+# scene's search compiles once, whatever the number of queries of a level.
+SEARCH_CHUNK = 8
+# The search runs a few times per build and its program is large (the contact equations, their
+# derivatives, the trust-region solve): XLA's backend optimisation would take most of its
+# compile time and save little of its run time.
+_SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+
+
+def run_search(eq, ineq, queries, args_batch, samples, tol, num_starts):
+    """`_search` over `queries` in chunks of `SEARCH_CHUNK`: Witness with leading axes (Q, V)."""
+    ts, xs = samples
+    count = len(queries)
+    padded = -(-count // SEARCH_CHUNK) * SEARCH_CHUNK
+    queries = list(queries) + [queries[0]] * (padded - count)
+    outs = []
+    for start in range(0, padded, SEARCH_CHUNK):
+        stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries[start : start + SEARCH_CHUNK])
+        operands = (ts, xs, stacked, args_batch)
+        shapes = tuple((a.shape, a.dtype) for a in jtu.tree_leaves(operands))
+        run = _compiled_search(eq, ineq, tol, num_starts, jtu.tree_structure(operands), shapes, operands)
+        outs.append(run(*operands))
+    return jtu.tree_map(lambda *a: np.concatenate([np.asarray(b) for b in a])[:count], *outs)
+
+
+def _compiled_search(eq, ineq, tol, num_starts, structure, shapes, operands):
+    """The search's executable for these constraint functions and operand shapes: compiled on
+    first use (`_SEARCH_COMPILE`), then reused for every level and `args` value of the scene."""
+    key = (eq, ineq, tol, num_starts, structure, shapes)
+    if key not in _SEARCHES:
+        if len(_SEARCHES) >= 8:
+            _SEARCHES.pop(next(iter(_SEARCHES)))
+        fn = jax.jit(functools.partial(_search, eq, ineq, tol=tol, num_starts=num_starts))
+        _SEARCHES[key] = fn.trace(*operands).lower().compile(_SEARCH_COMPILE)
+    return _SEARCHES[key]
+
+
+_SEARCHES: dict = {}
+
+
+def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
     def one(Q, args):
         return find_point(eq, ineq, ts, xs, (args, Q), tol=tol, num_starts=num_starts)
 
