@@ -47,6 +47,19 @@ def initial_states(n: int, seed: int = 0) -> np.ndarray:
     return np.stack([rad * np.cos(ang), rad * np.sin(ang), rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)], 1)
 
 
+def compile_and_time(fn, x0):
+    """(result, compile wall s, compile CPU s, best of 3 runs in s) of the jitted `fn` at `x0`."""
+    t, cpu = time.perf_counter(), time.process_time()
+    compiled = fn.trace(x0).lower().compile()
+    compile_s, compile_cpu_s = time.perf_counter() - t, time.process_time() - cpu
+    out, best = None, float("inf")
+    for _ in range(3):
+        t = time.perf_counter()
+        out = jax.block_until_ready(compiled(x0))
+        best = min(best, time.perf_counter() - t)
+    return out, compile_s, compile_cpu_s, best
+
+
 def one_k(k: int, forms) -> dict:
     scene = hj.examples.polygon_particle(k)
     args = {key: jnp.asarray(v) for key, v in ARGS.items()}
@@ -63,15 +76,7 @@ def one_k(k: int, forms) -> dict:
                 s, x, "free", 0.0, T1, args, stepsize_controller=ctrl, max_epochs=48
             )
         )
-        t, cpu = time.perf_counter(), time.process_time()
-        compiled = fn.trace(x0).lower().compile()
-        compile_s, compile_cpu_s = time.perf_counter() - t, time.process_time() - cpu
-        sol = jax.block_until_ready(compiled(x0))
-        best = float("inf")
-        for _ in range(3):
-            t = time.perf_counter()
-            sol = jax.block_until_ready(compiled(x0))
-            best = min(best, time.perf_counter() - t)
+        sol, compile_s, compile_cpu_s, best = compile_and_time(fn, x0)
         codes = np.asarray(sol.status)
         events[form] = np.asarray(sol.event_times)
         statuses = {hj.STATUS_NAMES[c]: int(np.sum(codes == c)) for c in np.unique(codes)}
@@ -130,14 +135,7 @@ def walker() -> dict:
     fn = jax.jit(
         lambda x: hj.simulate_batch(system, x, 0, 0.0, 3.0, args, stepsize_controller=ctrl, max_epochs=16)
     )
-    t, cpu = time.perf_counter(), time.process_time()
-    compiled = fn.trace(x0).lower().compile()
-    compile_s, compile_cpu_s = time.perf_counter() - t, time.process_time() - cpu
-    best = float("inf")
-    for _ in range(3):
-        t = time.perf_counter()
-        batch = jax.block_until_ready(compiled(x0))
-        best = min(best, time.perf_counter() - t)
+    batch, compile_s, compile_cpu_s, best = compile_and_time(fn, x0)
     codes = np.asarray(batch.status)
     statuses = {hj.STATUS_NAMES[c]: int(np.sum(codes == c)) for c in np.unique(codes)}
     row = {
