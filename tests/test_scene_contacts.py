@@ -75,6 +75,7 @@ def rod_system():
 
 # 16 states (45 modes, 128 transitions): its build and the compile of `simulate` take minutes on
 # 2 cores.
+@pytest.mark.slow
 @pytest.mark.costly  # building the rod's 16 contact states and compiling its run: tens of minutes
 def test_rod_dropped_flat_lands_on_both_ends_slides_and_sticks_at_the_closed_form_times():
     # Dropped flat from height z0 with speed v0 along x: both ends land at sqrt(2 z0 / g) (taken
