@@ -31,6 +31,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 from scipy.stats import qmc
 
+from .._core.checks import check_int
 from .._definition.system import HybridSystem
 from .._solve.simulate_batch import simulate_batch
 
@@ -59,9 +60,7 @@ class SensitivityOptions(eqx.Module):
         if self.sampler not in SAMPLERS:
             raise ValueError(f"SensitivityOptions: sampler must be one of {SAMPLERS}, got {self.sampler!r}.")
         for name, low in (("seed", 0), ("chunk_size", 1), ("n_bootstrap", 0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-                raise ValueError(f"SensitivityOptions: {name} must be an int >= {low}, got {v!r}.")
+            check_int("SensitivityOptions", name, getattr(self, name), low)
         if not 0 < self.confidence < 1:
             raise ValueError(f"SensitivityOptions: confidence must be in (0, 1), got {self.confidence!r}.")
 

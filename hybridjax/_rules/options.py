@@ -9,13 +9,9 @@ loop runs the executions.
 import equinox as eqx
 import numpy as np
 
+from .._core.checks import check_int
 from .locate import DEFAULT_LOCATOR, AbstractEventLocator
 from .zeno import ZenoOptions
-
-
-def _check_int(owner: str, name: str, value, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{owner}: {name} must be an int >= {low}, got {value!r}.")
 
 
 class EventOptions(eqx.Module):
@@ -63,7 +59,7 @@ class EventOptions(eqx.Module):
             if not 0 < self.tol < 1:
                 raise ValueError(f"EventOptions: tol must be in (0, 1) (relative to the step), "
                                  f"got {self.tol!r}.")
-        _check_int("EventOptions", "interior_points", self.interior_points, 0)
+        check_int("EventOptions", "interior_points", self.interior_points, 0)
 
 
 class SolveOptions(eqx.Module):
@@ -111,9 +107,9 @@ class SolveOptions(eqx.Module):
     throw: bool = eqx.field(static=True, default=False)  # static: decides whether a check is traced
 
     def __check_init__(self):
-        _check_int("SolveOptions", "max_epochs", self.max_epochs, 1)
-        _check_int("SolveOptions", "max_steps", self.max_steps, 1)
-        _check_int("SolveOptions", "max_zero_epochs", self.max_zero_epochs, 0)
+        check_int("SolveOptions", "max_epochs", self.max_epochs, 1)
+        check_int("SolveOptions", "max_steps", self.max_steps, 1)
+        check_int("SolveOptions", "max_zero_epochs", self.max_zero_epochs, 0)
         if not isinstance(self.events, EventOptions):
             raise TypeError(f"SolveOptions: events must be an hj.EventOptions, "
                             f"got {type(self.events).__name__}.")
