@@ -66,21 +66,14 @@ def diffrax_lockstep(system, *, solver, controller, t1, max_epochs=64, max_steps
     final_mode)`."""
     if loop not in ("bounded", "lax"):
         raise ValueError(f"loop={loop!r}: 'bounded' or 'lax'")
-    K = system.num_transitions
     targets = jnp.asarray(system.targets)
     term, event = _epoch_parts(system)
 
     def one(x0, mode0, args):
         def body(c):
             t, y, mode, i, times, done = c
-            sol = diffrax.diffeqsolve(term, solver, t, t1, None, y, (mode, args), stepsize_controller=controller,
-                                      event=event, max_steps=max_steps, saveat=diffrax.SaveAt(t1=True),
-                                      throw=False)
-            mask = jnp.stack(sol.event_mask) if K > 1 else jnp.atleast_1d(sol.event_mask[0])
-            fired = jnp.any(mask) & (sol.result == diffrax.RESULTS.event_occurred)
-            k = jnp.argmax(mask)
-            te, ye = sol.ts[-1], sol.ys[-1]
-            y_new = lax.switch(k, [lambda t, y, tr=tr: tr.reset(t, y, args) for tr in system.transitions], te, ye)
+            fired, k, te, ye, y_new = _epoch(system, term, event, solver, controller, t1, max_steps,
+                                             diffrax.RecursiveCheckpointAdjoint(), t, y, mode, args)
             times = times.at[i].set(jnp.where(fired, te, jnp.inf))
             return (te, jnp.where(fired, y_new, ye), jnp.where(fired, targets[k], mode), i + fired,
                     times, ~fired)
@@ -122,10 +115,23 @@ def _epoch_parts(system):
     return diffrax.ODETerm(flow), event
 
 
+def _epoch(system, term, event, solver, controller, t1, max_steps, adjoint, t, y, mode, args):
+    """One epoch of the lock-step loops: `diffeqsolve` from (t, y) in `mode` until t1 or an event.
+    Returns (an event fired, its transition k, the end time and state, the state after k's reset)."""
+    sol = diffrax.diffeqsolve(term, solver, t, t1, None, y, (mode, args), stepsize_controller=controller,
+                              event=event, max_steps=max_steps, saveat=diffrax.SaveAt(t1=True), throw=False,
+                              adjoint=adjoint)
+    mask = jnp.stack(sol.event_mask) if system.num_transitions > 1 else jnp.atleast_1d(sol.event_mask[0])
+    fired = jnp.any(mask) & (sol.result == diffrax.RESULTS.event_occurred)
+    k = jnp.argmax(mask)
+    te, ye = sol.ts[-1], sol.ys[-1]
+    y_new = lax.switch(k, [lambda t, y, tr=tr: tr.reset(t, y, args) for tr in system.transitions], te, ye)
+    return fired, k, te, ye, y_new
+
+
 def diffrax_epoch_scan(system, *, solver, controller, t1, max_epochs=64, max_steps=4096, adjoint=None):
     """One execution, `(x0, mode0, args) -> final_state`, as a `lax.scan` over `max_epochs`
     epochs of `diffeqsolve` + `Event` (epochs after the run has ended integrate nothing)."""
-    K = system.num_transitions
     targets = jnp.asarray(system.targets)
     term, event = _epoch_parts(system)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
@@ -133,14 +139,9 @@ def diffrax_epoch_scan(system, *, solver, controller, t1, max_epochs=64, max_ste
     def one(x0, mode0, args):
         def epoch(c, _):
             t, y, mode, done = c
-            sol = diffrax.diffeqsolve(term, solver, t, t1, None, y, (mode, args), stepsize_controller=controller,
-                                      event=event, max_steps=max_steps, saveat=diffrax.SaveAt(t1=True),
-                                      throw=False, adjoint=adjoint)
-            mask = jnp.stack(sol.event_mask) if K > 1 else jnp.atleast_1d(sol.event_mask[0])
-            fired = jnp.any(mask) & (sol.result == diffrax.RESULTS.event_occurred) & ~done
-            k = jnp.argmax(mask)
-            te, ye = sol.ts[-1], sol.ys[-1]
-            y_new = lax.switch(k, [lambda t, y, tr=tr: tr.reset(t, y, args) for tr in system.transitions], te, ye)
+            fired, k, te, ye, y_new = _epoch(system, term, event, solver, controller, t1, max_steps, adjoint,
+                                             t, y, mode, args)
+            fired = fired & ~done
             y_out = jnp.where(done, y, jnp.where(fired, y_new, ye))
             return (jnp.where(done, t, te), y_out, jnp.where(fired, targets[k], mode), done | ~fired), None
 

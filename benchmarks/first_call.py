@@ -117,16 +117,16 @@ def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
     args = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in p.items()}
     v = jnp.ones_like(x0)
 
-    def final(x, a, **kw):
-        return hj.simulate(sysm, x, mode0, 0.0, t1, a, **kw).final_state
-
     if lock:
         from _baselines import diffrax_epoch_scan
 
-        def final(x, a, adjoint=None):  # noqa: F811
+        def final(x, a, adjoint=None):
             run = diffrax_epoch_scan(sysm, solver=diffrax.Tsit5(), controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
                                      t1=t1, adjoint=adjoint)
             return run(x, sysm.mode_index(mode0), a)
+    else:
+        def final(x, a, **kw):
+            return hj.simulate(sysm, x, mode0, 0.0, t1, a, **kw).final_state
 
     if call == "forward":
         fn, inputs = jax.jit(final), (x0, args)
