@@ -229,16 +229,19 @@ def impact_gaps(scene, t, q, args, gaps):
         if c.armed is None:
             out.append(gaps[k])
         else:
-            armed = jnp.reshape(jnp.asarray(c.armed(jnp.asarray(t, q.dtype), q, args), q.dtype), ())
-            out.append(jnp.maximum(gaps[k], -armed))
+            out.append(jnp.maximum(gaps[k], -_armed_value(c, t, q, args)))
     return jnp.stack(out) if out else gaps[:0]
+
+
+def _armed_value(c, t, q, args):
+    """$c_k(t, q)$ of the armed contact `c`, a scalar of q's dtype."""
+    return jnp.reshape(jnp.asarray(c.armed(jnp.asarray(t, q.dtype), q, args), q.dtype), ())
 
 
 def armed_values(scene, t, q, args):
     """(K,): $c_k(t, q)$ of each armed contact, 1 for the others."""
     return jnp.stack([
-        jnp.ones((), q.dtype) if c.armed is None
-        else jnp.reshape(jnp.asarray(c.armed(jnp.asarray(t, q.dtype), q, args), q.dtype), ())
+        jnp.ones((), q.dtype) if c.armed is None else _armed_value(c, t, q, args)
         for c in scene.constraints
     ])
 
