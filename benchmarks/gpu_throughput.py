@@ -6,7 +6,9 @@ The ways, in the order each N measures them:
   `devices=1`, with its default block (the rare work in passes over N/32 executions) and with
   `block=N` (one pass);
 - hybridjax per execution, `jax.jit(jax.vmap(hj.simulate))` (what `simulate_batch` runs on a
-  GPU);
+  GPU), with the loop's bound on the iterations an execution waits for the event phase
+  (`MAX_WAIT`, 16) and with 4 and 64 in its place (the phase's cost is shared by more
+  executions the longer they wait, while waiting executions make no steps);
 - the plain diffrax lock-step loop (`_baselines.diffrax_lockstep`: a jitted `vmap` of
   `diffeqsolve` + `diffrax.Event`, one solve per epoch);
 - the closed form, jitted (`work_precision.ball_closed_form_jax`): no integration at all, the
@@ -19,7 +21,8 @@ ball's closed form in numpy (`problems.ball().truth`) on 2,000 executions drawn 
 (with the count of those whose number of bounces differs). A way that runs out of the
 accelerator's memory is recorded so. The results are written after every measurement, so a
 run cut short keeps what it measured. `--ways` measures some of the ways only; `--append` adds
-the run to those already in the output file (each run is reported as its own table).
+the run to those already in the output file (each run is reported as its own table); the
+batched engine (about 3e4 executions/s on a GPU) is measured up to `--batched-max-n`.
 
     python benchmarks/gpu_throughput.py                      # N = 1e4, 1e5, 1e6, 1e7
     python benchmarks/gpu_throughput.py --n 1000,10000 --out /tmp/t.json
@@ -28,6 +31,7 @@ the run to those already in the output file (each run is reported as its own tab
 
 import argparse
 import json
+import os
 import pathlib
 
 import diffrax
@@ -40,6 +44,7 @@ from _common import machine_info, timed
 from work_precision import ball_closed_form_jax, errors, runner
 
 import hybridjax as hj
+from hybridjax._engines import loop as hj_loop
 
 G, E = 9.8, 0.8
 CHECKED = 2000
@@ -51,6 +56,22 @@ def ways(prob):
                             max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
     closed = ball_closed_form_jax(prob.max_epochs)
     per_execution = runner(prob, "Tsit5", engine="vmap")
+
+    def waiting(max_wait):
+        """vmap(simulate) traced with the loop's phase-wait bound set to `max_wait`."""
+
+        @jax.jit
+        def run(x0, mode0):
+            default, hj_loop.MAX_WAIT = hj_loop.MAX_WAIT, max_wait
+            try:
+                return jax.vmap(lambda x, m: hj.simulate(
+                    prob.system, x, m, 0.0, prob.t1, prob.args, solver=diffrax.Tsit5(),
+                    stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9), event_tol=1e-12,
+                    max_epochs=prob.max_epochs, max_steps=20_000))(x0, mode0)
+            finally:
+                hj_loop.MAX_WAIT = default
+
+        return run, lambda r: (r.num_events, r.final_state)
 
     def batched(block):
         @jax.jit
@@ -67,6 +88,8 @@ def ways(prob):
         "hybridjax batched engine, block = N": batched("N"),
         "hybridjax vmap(simulate)": (lambda x, m: per_execution(x, m, 1e-9, 1e-12),
                                      lambda r: (r.num_events, r.final_state)),
+        "hybridjax vmap(simulate), phase wait 4": waiting(4),
+        "hybridjax vmap(simulate), phase wait 64": waiting(64),
         "diffrax lock-step loop": (jax.jit(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2])),
         "closed form": (jax.jit(lambda x, m: closed(x, G, E, prob.t1)), lambda r: r),
     }
@@ -84,6 +107,7 @@ def main():
     ap.add_argument("--n", default="10000,100000,1000000,10000000", help="comma-separated batch sizes")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--ways", default="", help="semicolon-separated: measure only the ways whose names end so")
+    ap.add_argument("--batched-max-n", type=float, default=1e5, help="largest N for the batched engine")
     ap.add_argument("--append", action="store_true", help="add this run to the output file's runs")
     ap.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "gpu_throughput.json"))
     a = ap.parse_args()
@@ -93,7 +117,7 @@ def main():
     x_all, m_all = prob.sample(rng, max(sizes))
     wanted = [w.strip() for w in a.ways.split(";") if w.strip()]
     fns = {k: v for k, v in ways(prob).items() if not wanted or any(w == k or k.endswith(w) for w in wanted)}
-    res = dict(machine=machine_info(), rounds=a.rounds, checked=CHECKED, rows={})
+    res = dict(machine=machine_info(), commit=os.environ.get("HJ_COMMIT", ""), rounds=a.rounds, checked=CHECKED, rows={})
     out = pathlib.Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     runs = json.loads(out.read_text())["runs"] if a.append and out.exists() else []
@@ -103,6 +127,8 @@ def main():
         truths = [prob.truth(x_all[i], m_all[i]) for i in idx]
         x, m = jnp.asarray(x_all[:n]), jnp.asarray(m_all[:n])
         for name, (fn, read) in fns.items():
+            if "batched" in name and n > a.batched_max_n:
+                continue
             try:
                 row = measure(prob, fn, read, x, m, a.rounds, idx, truths)
             except Exception as err:  # out of the accelerator's memory: recorded, the next way goes on
