@@ -250,6 +250,27 @@ def test_locate_root_brackets_the_root_from_the_right():
     assert 0.0 <= r - math.sqrt(2.0) <= 1e-12 and 2.0 - r * r <= 0.0
 
 
+def test_root_bracket_closes_in_a_few_newton_iterations_on_a_million_roots():
+    # Under vmap every execution waits for the slowest: the search must close its bracket in
+    # Newton's few iterations on every root, also where a converged Newton point lands within
+    # rounding of the bracket's end (a bisection from there takes ~40 halvings).
+    n = 1_000_000
+    rng = np.random.default_rng(0)
+    r, c = rng.uniform(0.2, 3.0, n), rng.uniform(-2.0, 2.0, n)
+    a, b = r - rng.uniform(0.01, 0.5, n), r + rng.uniform(0.01, 0.5, n)
+
+    def one(r, c, a, b):
+        def f(x):  # decreasing through its only root r in [a, b]
+            return (r - x) * (1.0 + 0.3 * c * (x - r)) * (2.0 + jnp.sin(x))
+
+        tol = 1e-12 * (b - a)
+        return R.root_bracket(f, a, b, tol)[2], R.locate_root(f, a, b, tol), tol
+
+    iterations, x, tol = map(np.asarray, jax.jit(jax.vmap(one))(r, c, a, b))
+    assert iterations.max() <= 8
+    assert np.all((x - r <= tol) & (x - r >= -4e-16 * r))
+
+
 def test_locate_minimum():
     x, f = R.locate_minimum(
         lambda x: (x - 0.3) ** 2 + 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12

@@ -59,6 +59,7 @@ from .locate import first_event as first_event
 from .locate import locate_minimum as locate_minimum
 from .locate import locate_root as locate_root
 from .locate import resolve_simultaneous as resolve_simultaneous
+from .locate import root_bracket as root_bracket
 from .locate import simultaneous_set as simultaneous_set
 from .records import Brackets as Brackets
 from .records import Detection as Detection

@@ -28,9 +28,10 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
 
     Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
-    falling back to bisection when a Newton step leaves the bracket or is not at most half
-    the step before last (Numerical Recipes' rtsafe). Each iterate x_k is followed by a probe
-    at x_k + delta_k if f(x_k) > 0, else at x_k - delta_k (towards the root), delta_k =
+    falling back to bisection when a Newton step is not at most half the step before last or
+    leaves the bracket by more than `tol` (Numerical Recipes' rtsafe; a step that lands within
+    `tol` outside it is clamped to its end, where the next probe closes it). Each iterate x_k
+    is followed by a probe at x_k + delta_k if f(x_k) > 0, else at x_k - delta_k (towards the root), delta_k =
     2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]: once Newton converges
     quadratically the root lies well within |x_k - x_{k-1}| of x_k, so x_k and the probe
     straddle it and the bracket closes at once (a fixed tiny delta would wait for Newton to
@@ -38,6 +39,27 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     Newton step from the right end then puts it a few ulps past the root (g <= 0 kept).
     No gradients: the caller differentiates the event time by the implicit function theorem.
     """
+    a, b = root_bracket(f, a, b, tol, max_iter)[:2]
+    # Polish: one Newton step from b (within tol of the root, so it lands within rounding of
+    # it), then the first of three points 4, 16, 64 ulp to its right where f <= 0, else b. The
+    # few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its
+    # arithmetic rounds differently by an ulp or so).
+    fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
+    xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
+    ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
+    cands = xp + jnp.array([64.0, 16.0, 4.0], xp.dtype) * ulp
+    f_cands = jax.vmap(f)(cands)
+    out = b
+    for i in range(3):  # the last one written wins: the first good one
+        cand = cands[i]
+        good = (f_cands[i] <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
+        out = jnp.where(good, cand, out)
+    return out
+
+
+def root_bracket(f, a, b, tol, max_iter: int = 64):
+    """`locate_root`'s bracket search: `(a, b, iterations)`, the bracket narrower than `tol`
+    (or after `max_iter` iterations) and the iterations it took."""
     a, b, tol = lax.stop_gradient((a, b, tol))
     # Points evaluated together are one evaluation of f in the program, not one per point.
     fa, fb = jax.vmap(f)(jnp.stack([a, b]))
@@ -67,29 +89,18 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
         step = fx / jnp.where(dfx != 0, dfx, 1.0)
         xn = x - step
         # As in rtsafe: take Newton's step if it stays in the bracket and is at most half the
-        # step before last (converging); bisect otherwise.
-        ok = (dfx != 0) & jnp.isfinite(xn) & (xn > a_new) & (xn < b_new)
-        ok = ok & (2 * jnp.abs(step) <= jnp.abs(dx_old))
+        # step before last (converging); bisect otherwise. A converging step that lands within
+        # `tol` outside the bracket has found a root within rounding of the bracket's end (the
+        # probe put that end there): clamped to the end, the next probe closes the bracket,
+        # where a bisection of the whole bracket would take ~40 halvings.
+        converging = (dfx != 0) & jnp.isfinite(xn) & (2 * jnp.abs(step) <= jnp.abs(dx_old))
+        near = (xn > a_new - tol) & (xn < b_new + tol)
         mid = 0.5 * (a_new + b_new)
-        xn = jnp.where(ok, xn, mid)
+        xn = jnp.where(converging & near, jnp.clip(xn, a_new, b_new), mid)
         return a_new, b_new, xn, jnp.abs(xn - x), dx, i + 1
 
-    a, b, *_ = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
-    # Polish: one Newton step from b (within tol of the root, so it lands within rounding of
-    # it), then the first of three points 4, 16, 64 ulp to its right where f <= 0, else b. The
-    # few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its
-    # arithmetic rounds differently by an ulp or so).
-    fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
-    xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
-    ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
-    cands = xp + jnp.array([64.0, 16.0, 4.0], xp.dtype) * ulp
-    f_cands = jax.vmap(f)(cands)
-    out = b
-    for i in range(3):  # the last one written wins: the first good one
-        cand = cands[i]
-        good = (f_cands[i] <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
-        out = jnp.where(good, cand, out)
-    return out
+    a, b, *_, i = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
+    return a, b, i
 
 
 def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
