@@ -207,6 +207,31 @@ def test_floquet_multipliers_against_finite_differences():
     assert abs(dp[0].imag) > 0.1
 
 
+def scene_state(y):
+    """The state of `hj.examples.compass_gait_scene()` (hip, stance leg's mass, swing leg's mass
+    and their velocities, in the slope's frame: x downhill, z normal) of the angles y."""
+    rot = np.stack([DOWNHILL, NORMAL])  # world to slope frame
+    bodies, _ = points(y)
+    hip, stance, swing = (rot @ p for _, p, _ in bodies)
+    dhip, dstance, dswing = (rot @ v for _, _, v in bodies)
+    return np.concatenate([hip, stance, swing, dhip, dstance, dswing])
+
+
 @pytest.mark.costly
 def test_compass_gait_scene_walks_the_same_gait():
-    pytest.skip("placeholder")
+    # The scene's stride from the reference gait, with the legs relabelled at the strike, lands on
+    # the same gait one period later (build about 20 s, first simulate about 100 s on 2 cores).
+    import diffrax
+
+    ref = reference()
+    scene, relabel = hj.examples.compass_gait_scene()
+    args = {key: jnp.asarray(value) for key, value in PARAMS.items()}
+    system = hj.contact_system(scene, ["foot0"], args, relabels=[relabel])
+    strike = [k for k, tr in enumerate(system.transitions) if tr.name == "impact foot1: leg0+leg1+foot0 -> leg0+leg1+foot0"]
+    x0 = scene_state(ref["state"])
+    sol = hj.simulate(system, jnp.asarray(x0), 0, 0.0, 1.2 * ref["period"], args, max_epochs=4,
+                      stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11))
+    assert sol.status == hj.Status.T1_REACHED and int(sol.num_events) == 1
+    assert [int(sol.transitions[0])] == strike
+    np.testing.assert_allclose(sol.event_times[0], ref["period"], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sol.states_after[0], x0, rtol=0, atol=1e-7)
