@@ -212,15 +212,16 @@ def scene_state(y):
     and their velocities, in the slope's frame: x downhill, z normal) of the angles y."""
     rot = np.stack([DOWNHILL, NORMAL])  # world to slope frame
     bodies, _ = points(y)
-    hip, stance, swing = (rot @ p for _, p, _ in bodies)
-    dhip, dstance, dswing = (rot @ v for _, _, v in bodies)
+    stance, hip, swing = (rot @ p for _, p, _ in bodies)
+    dstance, dhip, dswing = (rot @ v for _, _, v in bodies)
     return np.concatenate([hip, stance, swing, dhip, dstance, dswing])
 
 
 @pytest.mark.costly
 def test_compass_gait_scene_walks_the_same_gait():
     # The scene's stride from the reference gait, with the legs relabelled at the strike, lands on
-    # the same gait one period later (build about 20 s, first simulate about 100 s on 2 cores).
+    # the same gait one period later (build and first simulate about 80 s on 2 cores: left out of
+    # the default run, which checks the same gait on `compass_gait` above).
     import diffrax
 
     ref = reference()
@@ -233,5 +234,6 @@ def test_compass_gait_scene_walks_the_same_gait():
                       stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11))
     assert sol.status == hj.Status.T1_REACHED and int(sol.num_events) == 1
     assert [int(sol.transitions[0])] == strike
-    np.testing.assert_allclose(sol.event_times[0], ref["period"], rtol=0, atol=1e-8)
-    np.testing.assert_allclose(sol.states_after[0], x0, rtol=0, atol=1e-7)
+    # Measured: 6.3e-12 and 2.5e-11.
+    np.testing.assert_allclose(sol.event_times[0], ref["period"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.states_after[0], x0, rtol=0, atol=1e-9)
