@@ -28,7 +28,7 @@ STEPS = 16
 PUSH = 0.1
 
 
-def pushed_gait_end(walker, x_star, period, args, ctrl):
+def state_before_strike(walker, x_star, period, args, ctrl):
     """The state just before the strike that closes the step from x_star."""
     sol = hj.simulate(walker, jnp.asarray(x_star), 0, 0.0, 1.5 * period, args, stepsize_controller=ctrl,
                       max_epochs=2)
@@ -68,7 +68,7 @@ def main():
         import matplotlib.pyplot as plt
     except ImportError:
         return
-    ys = np.concatenate([np.asarray(gait.ys), np.asarray(pushed_gait_end(walker, x_star, period, args, ctrl))[None]])
+    ys = np.concatenate([np.asarray(gait.ys), np.asarray(state_before_strike(walker, x_star, period, args, ctrl))[None]])
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.8))
     axes[0].plot(ys[:, 1], ys[:, 3], color="C0", label="stance leg")
     axes[0].plot(ys[:, 0], ys[:, 2], color="C1", label="swing leg")
