@@ -7,6 +7,7 @@
   interior of the lift-off guard (the chapter's "reset into guards", Sec. 3.7: a zero-length epoch).
 - `rimless_wheel`, `pendulum_wall`, `truncated_ball`: periodic orbits, a nonlinear impact,
   Zeno truncation.
+- `compass_gait`: Goswami, Thuilot and Espiau's passive walker, a periodic gait without closed form.
 - `stiff_relay`: a relay watching a fast lag (stiff); `van_der_pol_relay`: a relay oscillator.
 - `integrate_and_fire`: a leaky integrate-and-fire neuron, a long spike train in closed form.
 - Scenes for `contact_system`: `wedge_particle` (the chapter's practice problem 1), `ball_scene`,
@@ -238,6 +239,86 @@ def rimless_wheel_closed_form(alpha: float, gamma: float) -> dict:
     c = math.cos(2 * alpha)
     w2 = 4 * c * c * math.sin(alpha) * math.sin(gamma) / (1 - c * c)
     return dict(state=np.array([gamma - alpha, math.sqrt(w2)]), multiplier=c * c)
+
+
+# ----------------------------------------------------------------------------- compass gait
+
+
+def compass_gait() -> HybridSystem:
+    r"""Goswami, Thuilot and Espiau's compass-gait walker on a slope, in its two leg angles.
+
+    Two rigid massless legs of length l = a + b, each with a point mass m at distance a from its
+    foot, and a point mass m_H at the hip; the stance foot is a pin, the slope goes down at angle
+    gamma. State x = (theta_ns, theta_s, theta_ns', theta_s'): the swing and stance legs' angles
+    from the vertical, each the direction from the leg's foot to the hip, positive when the hip is
+    downhill of the foot. Flow $M(q) q'' + C(q, q') q' + G(q) = 0$, q = (theta_ns, theta_s),
+    c = cos(theta_s - theta_ns), s = sin(theta_s - theta_ns):
+
+    $$M = \begin{pmatrix} m b^2 & -m l b c \\ -m l b c & m a^2 + (m_H + m) l^2 \end{pmatrix},\quad
+    C = m l b s \begin{pmatrix} 0 & \theta_s' \\ -\theta_{ns}' & 0 \end{pmatrix},\quad
+    G = g \begin{pmatrix} m b \sin\theta_{ns} \\ -(m a + (m_H + m) l) \sin\theta_s \end{pmatrix}.$$
+
+    Heel strike: the swing foot's height above the slope, l (cos(theta_s - gamma) -
+    cos(theta_ns - gamma)), reaches 0 while the foot is ahead of the stance foot along the slope,
+    d = l (sin(theta_s - gamma) - sin(theta_ns - gamma)), by at least `args["ahead"]`: guard
+    max(height, ahead - d) (the swing foot passes through the ground at mid-stance, as in the
+    classical model, without an impact). Reset: the legs swap, theta^+ = (theta_s, theta_ns), and
+    the impulse at the new foot conserves the angular momentum of the whole walker about the new
+    foot and that of the old stance leg about the hip: $Q^+ \omega^+ = Q^- \omega^-$, with
+    c_2 = cos(theta_s - theta_ns) at the strike,
+
+    $$Q^- = \begin{pmatrix} -m a b & -m a b + (m_H l^2 + 2 m a l) c_2 \\ 0 & -m a b \end{pmatrix},\quad
+    Q^+ = \begin{pmatrix} m b (b - l c_2) & m l (l - b c_2) + m a^2 + m_H l^2 \\
+    m b^2 & -m b l c_2 \end{pmatrix}.$$
+
+    `args = {"m", "m_H", "a", "b", "g", "gamma", "ahead"}` (`COMPASS_GAIT_ARGS`, shared with
+    `compass_gait_scene`). A. Goswami, B. Thuilot, B. Espiau, "A study of the passive gait of a
+    compass-like biped robot", IJRR 17(12), 1998.
+
+    !!! Example
+
+        ```python
+        args = {k: jnp.asarray(v) for k, v in hj.examples.COMPASS_GAIT_ARGS.items()}
+        orbit = hj.periodic_orbit(hj.examples.compass_gait(), 0, jnp.array([0.33, -0.22, 0.38, 1.1]),
+                                  args, max_epochs=4, t_max=2.0)
+        orbit.period  # 0.7343 s: the stable period-one gait on the 3 degree slope
+        ```
+    """
+
+    def two_by_two(a11, a12, a21, a22):
+        return jnp.stack([jnp.stack([a11, a12]), jnp.stack([a21, a22])])
+
+    def flow(t, x, p):
+        q, w = x[:2], x[2:]
+        m, m_H, a, b = p["m"], p["m_H"], p["a"], p["b"]
+        leg = a + b
+        c, s = jnp.cos(q[1] - q[0]), jnp.sin(q[1] - q[0])
+        M = two_by_two(m * b**2 + 0.0 * c, -m * leg * b * c, -m * leg * b * c,
+                       m * a**2 + (m_H + m) * leg**2 + 0.0 * c)
+        velocity = m * leg * b * s * jnp.stack([w[1] ** 2, -(w[0] ** 2)])
+        gravity = p["g"] * jnp.stack([m * b * jnp.sin(q[0]), -(m * a + (m_H + m) * leg) * jnp.sin(q[1])])
+        return jnp.concatenate([w, jnp.linalg.solve(M, -velocity - gravity)])
+
+    def strike_guard(t, x, p):
+        leg = p["a"] + p["b"]
+        height = leg * (jnp.cos(x[1] - p["gamma"]) - jnp.cos(x[0] - p["gamma"]))
+        ahead = leg * (jnp.sin(x[1] - p["gamma"]) - jnp.sin(x[0] - p["gamma"]))
+        return jnp.maximum(height, p["ahead"] - ahead)
+
+    def strike_reset(t, x, p):
+        m, m_H, a, b = p["m"], p["m_H"], p["a"], p["b"]
+        leg = a + b
+        c = jnp.cos(x[1] - x[0])
+        mab = m * a * b + 0.0 * c
+        Q_minus = two_by_two(-mab, -mab + (m_H * leg**2 + 2 * m * a * leg) * c, 0.0 * c, -mab)
+        Q_plus = two_by_two(m * b * (b - leg * c), m * leg * (leg - b * c) + m * a**2 + m_H * leg**2,
+                            m * b**2 + 0.0 * c, -m * b * leg * c)
+        w_plus = jnp.linalg.solve(Q_plus, Q_minus @ x[2:])
+        return jnp.concatenate([jnp.stack([x[1], x[0]]), w_plus])
+
+    stance = Mode("stance", flow, dim=4)
+    strike = Transition("stance", "stance", guard=strike_guard, reset=strike_reset, name="heel strike")
+    return HybridSystem([stance], [strike])
 
 
 # ----------------------------------------------------------------------------- pendulum
