@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 from jax import lax
+from jaxtyping import PRNGKeyArray
 
 from .._analysis.search import box_samples
 from .._core import small_linalg as small_linalg
@@ -73,11 +74,12 @@ from .scene import (
     ContactSystem,
     Scene,
     _identity,
-    _range,
     _releases,
     _terminal_domain,
     _terminal_flow,
+    point_search_key,
     run_search,
+    sample_box,
     witness_text,
 )
 
@@ -668,7 +670,7 @@ def friction_system(
     num_starts: int = 8,
     margin: float = 1e-3,
     tol: float = 1e-14,
-    seed: int = 0,
+    key: PRNGKeyArray | None = None,
     redundant: str = "error",
     max_modes: int = 64,
     relabels: Sequence = (),
@@ -699,10 +701,7 @@ def friction_system(
         jnp.arange(len(values)),
         jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
     )
-    (qlo, qhi), (vlo, vhi) = _range(scene.q_range, n, "q_range"), _range(scene.dq_range, n, "dq_range")
-    lo = jnp.asarray(qlo + vlo + (scene.t_range[0],), dtype)
-    hi = jnp.asarray(qhi + vhi + (scene.t_range[1],), dtype)
-    pts = box_samples(jax.random.key(seed), lo, hi, num_samples)
+    pts = box_samples(point_search_key(key, None), *sample_box(scene, dtype), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
     def search(qs):
