@@ -57,7 +57,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .._analysis.search import box_samples, find_point
 from .._core import small_linalg as small_linalg
 from .._core.names import one_of
-from .._definition.system import HybridSystem, Mode, Transition
+from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
 from .indexed import CONSTANT, FORCE, GAP, SELECTED, ContactEvaluation, ReleaseChoice, ResetSpec, SlotSpec
 from .mechanics import (
     _INDEPENDENT,
@@ -718,9 +718,10 @@ def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
 # ----------------------------------------------------------------------------- the system
 
 
-class ContactSystem(HybridSystem):
-    """The hybrid system of a `Scene`, built by `contact_system`: an ordinary `HybridSystem`
-    (every tool works on it) whose modes are contact sets, with what the builder found.
+class ContactSystem(AbstractHybridSystem):
+    """The hybrid system of a `Scene`, built by `contact_system`: an `AbstractHybridSystem`
+    (every tool works on it, as on a `HybridSystem`) whose modes are contact sets, with what the
+    builder found. It is validated at construction as a `HybridSystem` is.
 
     - `scene`: the scene.
     - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
@@ -730,6 +731,9 @@ class ContactSystem(HybridSystem):
     - `contact_forces(sol)`: the contact forces at the solution's saved states.
     """
 
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[()]
     scene: Scene = eqx.field(static=True)
     contact_sets: tuple = eqx.field(static=True)
     least_norm_modes: tuple = eqx.field(static=True)
@@ -742,7 +746,7 @@ class ContactSystem(HybridSystem):
         self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
         evaluation=None,
     ):  # fmt: skip
-        super().__init__(modes, transitions)
+        self.modes, self.transitions, self.completions = tuple(modes), tuple(transitions), ()
         self.scene = scene
         self.contact_sets = contact_sets
         self.least_norm_modes = least_norm_modes
@@ -750,6 +754,7 @@ class ContactSystem(HybridSystem):
         self.achievable = achievable
         self.form = form
         self.evaluation = evaluation
+        validate_system(self)
 
     def mode_indexed(self) -> ContactEvaluation | None:
         """The one masked evaluation for a traced mode (`form="mask"`), or None (`"branch"`)."""
