@@ -174,7 +174,7 @@ def _indices(system, edges, role: str) -> tuple[int, ...]:
 
 class AbstractHybridSystem(eqx.Module):
     r"""The interface of a hybrid system H = (J, Gamma, D, F, G, R) that the engines and every
-    tool read (A. M. Johnson, "Hybrid Dynamical Systems", Definition 1): its modes $J$ with their
+    tool read (A. M. Johnson, "Hybrid Dynamical Systems", eq. (1)): its modes $J$ with their
     flows $F_I$ and domains $D_I$ (`Mode`), its edges $\Gamma$ with guards $G_{IJ}$ and resets
     $R_{IJ}$ (`Transition`), and optional Zeno completions.
 

@@ -301,6 +301,8 @@ def stop_goes(which, inside, subsets, to_stick: bool, tied: tuple):
 class _StateFunctions(eqx.Module):
     """Flow, forces and guards of one friction state (static descriptors)."""
 
+    # Static: a mode's flow and guards are these objects, leaves of the system's pytree; the
+    # scene (callables) and the state (Python indices) choose the code traced.
     scene: Scene = eqx.field(static=True)
     state: tuple = eqx.field(static=True)
 
@@ -392,6 +394,7 @@ class _FrictionImpact(eqx.Module):
     then the frictional contacts of the new set slip by the sign of their tangential velocity.
     Outcomes are (candidate, signs), numbered by `outcome_id`."""
 
+    # Static: a reset of the system's pytree; callables and Python indices.
     scene: Scene = eqx.field(static=True)
     source: tuple = eqx.field(static=True)
     k: int = eqx.field(static=True)
@@ -636,7 +639,7 @@ class FrictionSystem(ContactSystem):
     whole entry of a terminal mode). `contact_forces` reports a slipping contact's tangential
     column as its friction force $-\mu s \lambda_n$."""
 
-    states: tuple = eqx.field(static=True)
+    states: tuple = eqx.field(static=True)  # names per mode, read in Python
 
     def __init__(self, modes, transitions, *, states, **kwargs):
         super().__init__(modes, transitions, **kwargs)
@@ -806,6 +809,8 @@ def friction_system(
 # ----------------------------------------------------------------------------- mode-indexed evaluation
 
 
+# `FrictionSlot` and `FrictionReset` are plain Python data read while a step is traced; they live
+# in the static fields of `FrictionEvaluation`, so their own fields are ordinary ones.
 class FrictionSlot(eqx.Module):
     """One watched function of a friction mode, as `FrictionEvaluation` reads it: `kind`
     "painleve" (the slip consistency), "impact" (constraint `j`'s gap where the impact's
@@ -813,15 +818,15 @@ class FrictionSlot(eqx.Module):
     `d` lambda_t of `j` + `offset`), "stop" (s v_t of slipping `j` of `state` where the stop
     goes to stick with `tied` (`to_stick`) or to reverse), or "constant" (`offset`)."""
 
-    kind: str = eqx.field(static=True)
-    j: int = eqx.field(static=True, default=0)
-    offset: float = eqx.field(static=True, default=0.0)
-    d: float = eqx.field(static=True, default=0.0)
-    ids: tuple = eqx.field(static=True, default=())
-    impact: Any = eqx.field(static=True, default=None)
-    state: tuple | None = eqx.field(static=True, default=None)
-    to_stick: bool = eqx.field(static=True, default=False)
-    tied: tuple = eqx.field(static=True, default=())
+    kind: str
+    j: int = 0
+    offset: float = 0.0
+    d: float = 0.0
+    ids: tuple = ()
+    impact: Any = None
+    state: tuple | None = None
+    to_stick: bool = False
+    tied: tuple = ()
 
 
 class FrictionReset(eqx.Module):
@@ -829,10 +834,10 @@ class FrictionReset(eqx.Module):
     `rows` held (restitution of constraint `hit`, when `restitute`) and least-norm impulses
     when `least_norm` (a projection onto a stick state's rows is a plastic impact)."""
 
-    rows: tuple | None = eqx.field(static=True, default=None)
-    hit: int = eqx.field(static=True, default=0)
-    restitute: bool = eqx.field(static=True, default=False)
-    least_norm: bool = eqx.field(static=True, default=False)
+    rows: tuple | None = None
+    hit: int = 0
+    restitute: bool = False
+    least_norm: bool = False
 
 
 class FrictionEvaluation(ModeIndexed):
@@ -842,6 +847,7 @@ class FrictionEvaluation(ModeIndexed):
     discrete choices (an impact's outcome, where a stopping contact goes) are computed only where
     one of the current mode's guards that reads them is at or below zero."""
 
+    # Static: the scene's Python callables and the tables that choose the code traced.
     scene: Scene = eqx.field(static=True)
     states: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)

@@ -186,9 +186,9 @@ class Constraint(eqx.Module):
     name: str = eqx.field(static=True)
     fn: Callable = eqx.field(static=True)
     kind: str = eqx.field(static=True, default=UNILATERAL)
-    restitution: float | Callable | None = eqx.field(static=True, default=None)
+    restitution: float | Callable | None = None
     tangent: Callable | None = eqx.field(static=True, default=None)
-    friction: float | Callable | None = eqx.field(static=True, default=None)
+    friction: float | Callable | None = None
     armed: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
@@ -283,12 +283,11 @@ class Scene(eqx.Module):
     mass: Callable = eqx.field(static=True)
     forces: Callable = eqx.field(static=True)
     constraints: tuple[Constraint, ...] = eqx.field(static=True, converter=tuple)
-    # The sampling boxes are read by the builder in Python (numpy), never traced: static, as
-    # Python floats in nested tuples (hashable).
-    bounds: tuple[tuple[float, ...], tuple[float, ...]] = eqx.field(static=True)
-    t_bounds: tuple[float, float] = eqx.field(static=True)
+    # The sampling boxes: Python floats read by the builder (numpy), ordinary fields.
+    bounds: tuple[tuple[float, ...], tuple[float, ...]]
+    t_bounds: tuple[float, float]
     names: tuple[str, ...] | None = eqx.field(static=True)
-    velocity_terms: bool = eqx.field(static=True)
+    velocity_terms: bool = eqx.field(static=True)  # chooses the code traced
 
     def __init__(
         self,
@@ -457,6 +456,8 @@ class _Impact(eqx.Module):
     """Impact of constraint `k` in contact set `A` with release candidate `R`, on the constraint
     indices `order` (A's, then k); static description, functions of (t, x, args)."""
 
+    # Static: a transition's reset is this object, part of the system's pytree; the scene
+    # (callables) and the Python indices choose the code traced.
     scene: Scene = eqx.field(static=True)
     source: tuple = eqx.field(static=True)  # sorted indices of A
     k: int = eqx.field(static=True)
@@ -573,6 +574,7 @@ class _ModeFunctions(eqx.Module):
     constraints only (the mode's own functions; `ContactEvaluation` solves with all rows,
     masked, for a traced mode)."""
 
+    # Static: a mode's flow is this object, part of the system's pytree; callables and indices.
     scene: Scene = eqx.field(static=True)
     held: tuple = eqx.field(static=True)
     least_norm: bool = eqx.field(static=True)
@@ -734,6 +736,7 @@ class ContactSystem(AbstractHybridSystem):
     modes: tuple[Mode, ...]
     transitions: tuple[Transition, ...]
     completions: tuple[()]
+    # Static: the scene (callables), names, report lines and the evaluation's tables.
     scene: Scene = eqx.field(static=True)
     contact_sets: tuple = eqx.field(static=True)
     least_norm_modes: tuple = eqx.field(static=True)
