@@ -330,14 +330,14 @@ class AbstractHybridSystem(eqx.Module):
             for c, comp in enumerate(self.completions)
         )
         return (
-            f"<div><b>{type(self).__name__}</b>: {self.num_modes} modes, {self.num_transitions} transitions"
+            f"<div><b>HybridSystem</b>: {self.num_modes} modes, {self.num_transitions} transitions"
             "<table><tr><th>mode</th><th>name</th><th>dim</th><th>domain</th><th>leaving</th></tr>"
             f"{modes}</table><table><tr><th>transition</th><th>name</th><th>source</th>"
             f"<th>target</th></tr>{trans}{comps}</table></div>"
         )
 
     def __repr__(self) -> str:
-        lines = [f"{type(self).__name__}({self.num_modes} modes, {self.num_transitions} transitions)"]
+        lines = [f"HybridSystem({self.num_modes} modes, {self.num_transitions} transitions)"]
         for i, m in enumerate(self.modes):
             dom = ", domain" if m.domain is not None else ""
             lines.append(f"  mode {i} '{m.name}': dim {m.dim}{dom}")

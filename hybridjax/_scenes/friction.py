@@ -71,10 +71,11 @@ from .scene import (
     INCONSISTENT,
     UNBUILT,
     UNILATERAL,
-    ContactSystem,
+    AbstractContactSystem,
     Scene,
     _identity,
     _releases,
+    _set_fields,
     _terminal_domain,
     _terminal_flow,
     point_search_key,
@@ -633,17 +634,29 @@ def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
 # ----------------------------------------------------------------------------- the system
 
 
-class FrictionSystem(ContactSystem):
-    r"""The `ContactSystem` of a scene with friction: `states` gives, for each mode, the state of
+class FrictionSystem(AbstractContactSystem):
+    r"""The contact system of a scene with friction (as `ContactSystem`, with the same fields and
+    methods): `states` gives, for each mode, the state of
     every constraint (`None` open, `"held"`, `"stick"`, `"slip+"`, `"slip-"`; `None` for the
     whole entry of a terminal mode). `contact_forces` reports a slipping contact's tangential
     column as its friction force $-\mu s \lambda_n$."""
 
-    states: tuple = eqx.field(static=True)  # names per mode, read in Python
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[()]
+    # Static: the scene (callables), names, report lines and the evaluation's tables.
+    scene: Scene = eqx.field(static=True)
+    contact_sets: tuple = eqx.field(static=True)
+    least_norm_modes: tuple = eqx.field(static=True)
+    report: tuple = eqx.field(static=True)
+    achievable: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+    evaluation: "FrictionEvaluation | None" = eqx.field(static=True)
+    states: tuple = eqx.field(static=True)
 
-    def __init__(self, modes, transitions, *, states, **kwargs):
-        super().__init__(modes, transitions, **kwargs)
+    def __init__(self, modes, transitions, *, states, evaluation=None, **fields):
         self.states = states
+        _set_fields(self, modes, transitions, evaluation=evaluation, **fields)
 
     def _force_function(self) -> Callable:
         built = [(m, s) for m, s in enumerate(self.states) if s is not None]

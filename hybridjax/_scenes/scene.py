@@ -42,6 +42,7 @@ that no release candidate solves (dependent constraints, or rounding at a tie): 
 unbuilt candidates, or in a terminal mode `"inconsistent: impact of <k> in <set>"`.
 """
 
+import abc
 import functools
 import itertools
 from collections.abc import Callable, Sequence
@@ -720,44 +721,22 @@ def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
 # ----------------------------------------------------------------------------- the system
 
 
-class ContactSystem(AbstractHybridSystem):
-    """The hybrid system of a `Scene`, built by `contact_system`: an `AbstractHybridSystem`
-    (every tool works on it, as on a `HybridSystem`) whose modes are contact sets, with what the
-    builder found. It is validated at construction as a `HybridSystem` is.
+class AbstractContactSystem(AbstractHybridSystem):
+    """A hybrid system built from a `Scene`, whose modes are contact sets: what `ContactSystem`
+    and `FrictionSystem` share (the build report, the evaluation for a traced mode, the contact
+    forces along a solution). Each gives its fields and `_force_function`."""
 
-    - `scene`: the scene.
-    - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
-      `"unbuilt: <set>"` modes).
-    - `report`: the lines of the build report (built transitions with a witness state, pruned
-      transitions and sets with the reason); the repr prints them.
-    - `contact_forces(sol)`: the contact forces at the solution's saved states.
-    """
+    scene: eqx.AbstractVar[Scene]
+    contact_sets: eqx.AbstractVar[tuple]
+    least_norm_modes: eqx.AbstractVar[tuple]
+    report: eqx.AbstractVar[tuple]
+    achievable: eqx.AbstractVar[tuple]
+    form: eqx.AbstractVar[str]
+    evaluation: eqx.AbstractVar[Any]
 
-    modes: tuple[Mode, ...]
-    transitions: tuple[Transition, ...]
-    completions: tuple[()]
-    # Static: the scene (callables), names, report lines and the evaluation's tables.
-    scene: Scene = eqx.field(static=True)
-    contact_sets: tuple = eqx.field(static=True)
-    least_norm_modes: tuple = eqx.field(static=True)
-    report: tuple = eqx.field(static=True)
-    achievable: tuple = eqx.field(static=True)
-    form: str = eqx.field(static=True)
-    evaluation: ContactEvaluation | None = eqx.field(static=True)
-
-    def __init__(
-        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
-        evaluation=None,
-    ):  # fmt: skip
-        self.modes, self.transitions, self.completions = tuple(modes), tuple(transitions), ()
-        self.scene = scene
-        self.contact_sets = contact_sets
-        self.least_norm_modes = least_norm_modes
-        self.report = report
-        self.achievable = achievable
-        self.form = form
-        self.evaluation = evaluation
-        validate_system(self)
+    @abc.abstractmethod
+    def _force_function(self) -> Callable:
+        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
 
     def mode_indexed(self) -> ContactEvaluation | None:
         """The one masked evaluation for a traced mode (`form="mask"`), or None (`"branch"`)."""
@@ -775,28 +754,6 @@ class ContactSystem(AbstractHybridSystem):
     def built_sets(self) -> tuple[frozenset, ...]:
         """The contact sets built as modes (sets of constraint names)."""
         return tuple(frozenset(s) for s in self.contact_sets if s is not None)
-
-    def _force_function(self) -> Callable:
-        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
-        scene, K = self.scene, len(self.scene.constraints)
-        fns, owners = rows(scene, range(K))
-        table = np.zeros((self.num_modes, K))
-        for m, s in enumerate(self.contact_sets):
-            for name in s or ():
-                table[m, scene.index(name)] = 1.0
-        table = table[:, np.asarray(owners, dtype=int)]
-        least_norm = any(self.least_norm_modes)
-        n = scene.dim
-
-        def one(t, y, mode, args):
-            ok = (mode >= 0) & jnp.isfinite(t)
-            mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
-            y = jnp.where(ok, y, 0.0)
-            t = jnp.where(ok, t, 0.0)
-            _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
-            return jnp.where(ok, lam * mask, jnp.nan)
-
-        return one
 
     def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
         r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
@@ -825,6 +782,71 @@ class ContactSystem(AbstractHybridSystem):
 
         lines = "<br>".join(html.escape(line) for line in self.report)
         return super()._repr_html_() + f"<div><pre>{lines}</pre></div>"
+
+
+def _set_fields(system, modes, transitions, **fields) -> None:
+    """Set a contact system's fields in its `__init__` (no Zeno completions), then validate it as
+    `HybridSystem` does."""
+    system.modes, system.transitions, system.completions = tuple(modes), tuple(transitions), ()
+    for name, value in fields.items():
+        setattr(system, name, value)
+    validate_system(system)
+
+
+class ContactSystem(AbstractContactSystem):
+    """The hybrid system of a `Scene`, built by `contact_system`: an `AbstractHybridSystem`
+    (every tool works on it, as on a `HybridSystem`) whose modes are contact sets, with what the
+    builder found. It is validated at construction as a `HybridSystem` is.
+
+    - `scene`: the scene.
+    - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
+      `"unbuilt: <set>"` modes).
+    - `report`: the lines of the build report (built transitions with a witness state, pruned
+      transitions and sets with the reason); the repr prints them.
+    - `contact_forces(sol)`: the contact forces at the solution's saved states.
+    """
+
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[()]
+    # Static: the scene (callables), names, report lines and the evaluation's tables.
+    scene: Scene = eqx.field(static=True)
+    contact_sets: tuple = eqx.field(static=True)
+    least_norm_modes: tuple = eqx.field(static=True)
+    report: tuple = eqx.field(static=True)
+    achievable: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+    evaluation: ContactEvaluation | None = eqx.field(static=True)
+
+    def __init__(
+        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
+        evaluation=None,
+    ):  # fmt: skip
+        _set_fields(self, modes, transitions, scene=scene, contact_sets=contact_sets,
+                    least_norm_modes=least_norm_modes, report=report, achievable=achievable, form=form,
+                    evaluation=evaluation)  # fmt: skip
+
+    def _force_function(self) -> Callable:
+        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
+        scene, K = self.scene, len(self.scene.constraints)
+        fns, owners = rows(scene, range(K))
+        table = np.zeros((self.num_modes, K))
+        for m, s in enumerate(self.contact_sets):
+            for name in s or ():
+                table[m, scene.index(name)] = 1.0
+        table = table[:, np.asarray(owners, dtype=int)]
+        least_norm = any(self.least_norm_modes)
+        n = scene.dim
+
+        def one(t, y, mode, args):
+            ok = (mode >= 0) & jnp.isfinite(t)
+            mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
+            y = jnp.where(ok, y, 0.0)
+            t = jnp.where(ok, t, 0.0)
+            _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
+            return jnp.where(ok, lam * mask, jnp.nan)
+
+        return one
 
 
 def _as_set(scene: Scene, contact_set) -> frozenset:
@@ -864,7 +886,7 @@ def contact_system(
     max_modes: int = 64,
     relabels: Sequence[Relabel] = (),
     seed: int | None = None,
-) -> ContactSystem:
+) -> AbstractContactSystem:
     r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
 
     Starting from the `initial` contact sets, each transition out of a built set (an impact of
