@@ -38,6 +38,7 @@ from ._analysis.sensitivity import sample as sample
 from ._analysis.sensitivity import sobol_indices as sobol_indices
 from ._core.status import STATUS_NAMES as STATUS_NAMES
 from ._core.status import Status as Status
+from ._definition.system import AbstractHybridSystem as AbstractHybridSystem
 from ._definition.system import HybridSystem as HybridSystem
 from ._definition.system import Mode as Mode
 from ._definition.system import Transition as Transition

@@ -481,8 +481,7 @@ def wedge_particle() -> Scene:
         mass=lambda q, p: p["m"] * jnp.eye(2),
         forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1]]),
         constraints=[Constraint("G", lambda t, q, p: q[1]), Constraint("H", a_H)],
-        q_range=(-1.0, 1.0),
-        dq_range=(-2.0, 2.0),
+        bounds=((-1.0, -1.0, -2.0, -2.0), (1.0, 1.0, 2.0, 2.0)),  # x = (q, dq)
         names=("x", "z"),
     )
 
@@ -495,8 +494,7 @@ def ball_scene() -> Scene:
         mass=lambda q, p: jnp.eye(1),
         forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
         constraints=[Constraint("floor", lambda t, q, p: q[0], restitution=lambda p: p["e"])],
-        q_range=(0.0, 2.0),
-        dq_range=(-5.0, 5.0),
+        bounds=((0.0, -5.0), (2.0, 5.0)),  # x = (q, dq)
         names=("h",),
     )
 
@@ -510,8 +508,7 @@ def ceiling_scene() -> Scene:
         mass=lambda q, p: jnp.eye(1),
         forces=lambda t, q, dq, p: -p["g"] + 0.0 * q,
         constraints=[Constraint("ceiling", lambda t, q, p: p["H"] - q[0])],
-        q_range=(0.0, 2.0),
-        dq_range=(-5.0, 5.0),
+        bounds=((0.0, -5.0), (2.0, 5.0)),  # x = (q, dq)
         names=("z",),
     )
 
@@ -538,8 +535,7 @@ def polygon_particle(num_walls: int) -> Scene:
         mass=lambda q, p: jnp.eye(2),
         forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["g"] + 0.0 * q[1]]),
         constraints=[wall(k) for k in range(K)],
-        q_range=(-1.2, 1.2),
-        dq_range=(-3.0, 3.0),
+        bounds=((-1.2, -1.2, -3.0, -3.0), (1.2, 1.2, 3.0, 3.0)),  # x = (q, dq)
         names=("x", "z"),
     )
 
@@ -591,8 +587,7 @@ def rimless_wheel_scene(inertia: float = 0.1) -> tuple[Scene, Relabel]:
         mass=mass,
         forces=forces,
         constraints=[spoke(0), spoke(1)],
-        q_range=((-0.5, 0.5, -0.5), (0.5, 1.0, 0.5)),
-        dq_range=(-1.0, 1.0),
+        bounds=((-0.5, 0.5, -0.5) + (-1.0,) * 3, (0.5, 1.0, 0.5) + (1.0,) * 3),  # x = (q, dq)
         names=("x", "z", "phi"),
     )
     return scene, Relabel(("spoke1",), ("spoke0",), q_map=next_stance)
@@ -689,8 +684,10 @@ def compass_gait_scene() -> tuple[Scene, Relabel]:
         mass=mass,
         forces=forces,
         constraints=[leg(0), leg(1), *feet()],
-        q_range=((-0.5, 0.8, -0.6, 0.3, -0.6, 0.3), (0.5, 1.0, 0.6, 0.6, 0.6, 0.6)),
-        dq_range=(-2.0, 2.0),
+        bounds=(
+            (-0.5, 0.8, -0.6, 0.3, -0.6, 0.3) + (-2.0,) * 6,  # x = (q, dq)
+            (0.5, 1.0, 0.6, 0.6, 0.6, 0.6) + (2.0,) * 6,
+        ),
         names=("x_H", "z_H", "x_0", "z_0", "x_1", "z_1"),
     )
     return scene, Relabel(("leg0", "leg1", "foot1"), ("leg0", "leg1", "foot0"), q_map=swap)
@@ -732,7 +729,6 @@ def rod_scene(friction: tuple[str, ...] = ()) -> Scene:
         mass=lambda q, p: jnp.diag(jnp.stack([p["m"], p["m"], p["m"] * p["L"] ** 2 / 12 + 0.0 * q[2]])),
         forces=lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["m"] * p["g"] + 0.0 * q[1], 0.0 * q[2]]),
         constraints=[contact("left", -1.0), contact("right", 1.0)],
-        q_range=((-0.5, 0.0, -1.0), (0.5, 1.0, 1.0)),
-        dq_range=(-2.0, 2.0),
+        bounds=((-0.5, 0.0, -1.0) + (-2.0,) * 3, (0.5, 1.0, 1.0) + (2.0,) * 3),  # x = (q, dq)
         names=("x", "z", "phi"),
     )

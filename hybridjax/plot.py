@@ -480,8 +480,8 @@ class SceneDrawing(eqx.Module):
     segments: tuple = eqx.field(static=True, default=(), converter=_items)
     contacts: tuple = eqx.field(static=True, default=(), converter=_items)
     ground: tuple = eqx.field(static=True, default=(), converter=_items)
-    force_scale: float | None = eqx.field(static=True, default=None)
-    contact_tol: float = eqx.field(static=True, default=1e-6)
+    force_scale: float | None = None
+    contact_tol: float = 1e-6
 
     def __check_init__(self):
         if not self.points:

@@ -1,6 +1,8 @@
-"""Definition-time validation: every error names the mode or transition at fault."""
+"""Definition-time validation: every error names the mode or transition at fault; a system written
+against `hj.AbstractHybridSystem`."""
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import hybridjax as hj
@@ -109,3 +111,42 @@ def test_bad_simulate_arguments():
     with pytest.raises(TypeError, match="adjoint"):
         hj.simulate(sys, jnp.array([1.0, 0.0]), "flight", 0.0, 1.0, args,
                     adjoint=__import__("diffrax").BacksolveAdjoint())
+
+
+# ---------------------------------------------------------------------------- the interface
+class _InterfaceBall(hj.AbstractHybridSystem):
+    """The bouncing ball written directly against the interface: three attributes, one method."""
+
+    modes: tuple = (hj.Mode("flight", lambda t, x, a: jnp.stack([x[1], -a["g"] + 0.0 * x[0]]), dim=2),)
+    transitions: tuple = (
+        hj.Transition("flight", "flight", guard=lambda t, x, a: x[0],
+                      reset=lambda t, x, a: jnp.stack([x[0], -a["e"] * x[1]])),
+    )
+    completions: tuple = ()
+
+    def mode_indexed(self):
+        return None
+
+
+def test_a_subclass_of_the_interface_is_simulated():
+    # First impact from height h0 at rest: h0 - g t^2 / 2 = 0, t = sqrt(2 h0 / g) (closed form);
+    # the second 2 e sqrt(2 h0 / g) later (the rebound speed e sqrt(2 g h0) up and down).
+    h0, g, e = 1.5, 9.81, 0.7
+    ball = _InterfaceBall()
+    assert ball.sources == ball.targets == (0,) and ball.mode_names == ("flight",)
+    sol = hj.simulate(ball, jnp.array([h0, 0.0]), "flight", 0.0, 1.5, {"g": g, "e": e}, max_epochs=4)
+    t_hit = (2.0 * h0 / g) ** 0.5
+    assert int(sol.status) == hj.Status.T1_REACHED and int(sol.num_events) == 2
+    np.testing.assert_allclose(sol.event_times[:2], [t_hit, t_hit * (1.0 + 2.0 * e)], rtol=0, atol=1e-9)
+    for system in (hj.examples.bouncing_ball(), ball):
+        assert isinstance(system, hj.AbstractHybridSystem)
+    with pytest.raises(TypeError):
+        hj.AbstractHybridSystem()  # abstract: modes, transitions, completions, mode_indexed
+
+    class NoModeIndexed(hj.AbstractHybridSystem):
+        modes: tuple = ()
+        transitions: tuple = ()
+        completions: tuple = ()
+
+    with pytest.raises(TypeError, match="mode_indexed"):
+        NoModeIndexed()

@@ -29,7 +29,7 @@ def slope_forces(t, q, dq, p):
 
 FLOOR = hj.Constraint("floor", lambda t, q, p: q[1], tangent=lambda t, q, p: q[0], friction=lambda p: p["mu"])
 BLOCK_SCENE = hj.Scene(
-    2, lambda q, p: jnp.eye(2), slope_forces, [FLOOR], q_range=(-1.0, 1.0), dq_range=(-2.0, 2.0)
+    2, lambda q, p: jnp.eye(2), slope_forces, [FLOOR], bounds=((-1.0, -1.0, -2.0, -2.0), (1.0, 1.0, 2.0, 2.0))
 )
 # tan(0.3) = 0.31 < mu = 0.5 < tan(0.6) = 0.68: the block sticks on the first two slopes, slides
 # down the third.
@@ -296,8 +296,7 @@ def painleve_system():
         rod.mass,
         rod.forces,
         rod.constraints[:1],
-        q_range=rod.q_range,
-        dq_range=rod.dq_range,
+        bounds=rod.bounds,
         names=rod.names,
     )
     return hj.contact_system(scene, ["left:slip-"], dict(ROD_ARGS, mu=jnp.asarray(PAINLEVE_MU)))

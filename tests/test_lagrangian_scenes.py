@@ -37,8 +37,7 @@ def polar_scene(velocity_terms):
         lambda q, p: jnp.diag(jnp.stack([1.0 + 0.0 * q[0], q[0] ** 2])),
         polar_forces,
         [hj.Constraint("ring", lambda t, q, p: RING - q[0])],
-        q_range=((0.9, -1.0), (RING, 1.0)),
-        dq_range=(-2.0, 2.0),
+        bounds=((0.9, -1.0, -2.0, -2.0), (RING, 1.0, 2.0, 2.0)),
         velocity_terms=velocity_terms,
     )
 
@@ -154,7 +153,7 @@ def compass_system():
         4, compass_mass, compass_forces,
         [hj.Constraint("foot_x", lambda t, q, p: q[0] - L * jnp.sin(q[2]), kind="bilateral"),
          hj.Constraint("foot_z", lambda t, q, p: q[1] - L * jnp.cos(q[2]), kind="bilateral")],
-        q_range=(-1.0, 1.0), dq_range=(-1.0, 1.0), names=("x", "z", "theta_s", "theta_ns"),
+        bounds=(-1.0, 1.0), names=("x", "z", "theta_s", "theta_ns"),
     )
     return hj.contact_system(scene, ["free"])
 

@@ -210,3 +210,44 @@ def test_the_optimisers_and_the_filter_take_the_package_wide_names():
     problem = hj.Shooting(BALL, lambda p, sol: sol.final_state[0], X0, "flight", t1=1.0, args=BALL_ARGS)
     with pytest.raises(ValueError, match="iterations and steps are the same option"):
         hj.shoot(problem, jnp.asarray(1.0), optax.sgd(0.1), iterations=2, steps=2)
+
+
+_FLOOR = hj.Constraint("floor", lambda t, q, a: q[0], restitution=lambda a: a["e"])
+
+
+def _unit_mass(q, a):
+    return jnp.eye(1)
+
+
+def _gravity(t, q, dq, a):
+    return -a["g"] + 0.0 * q
+
+
+def _ball_scene(**box):
+    return hj.Scene(1, _unit_mass, _gravity, [_FLOOR], **box)
+
+
+def test_the_scene_takes_the_package_wide_names():
+    # bounds: (lower, upper) over x = (q, dq); q_range, dq_range its halves, t_range t_bounds
+    box = dict(bounds=((0.0, -5.0), (2.0, 5.0)), t_bounds=(0.0, 1.0))
+    scene = _ball_scene(**box)
+    assert scene == _ball_scene(q_range=(0.0, 2.0), dq_range=(-5.0, 5.0), t_range=(0.0, 1.0))
+    assert scene.bounds == ((0.0, -5.0), (2.0, 5.0)) and scene.t_bounds == scene.t_range == (0.0, 1.0)
+    assert scene.q_range == ((0.0,), (2.0,)) and scene.dq_range == ((-5.0,), (5.0,))
+    # a scalar lower or upper holds for every component of x; the default box is [-1, 1]^(2n)
+    assert _ball_scene(bounds=(-1.0, 1.0)).bounds == _ball_scene().bounds == ((-1.0, -1.0), (1.0, 1.0))
+    for both, names in ((dict(bounds=box["bounds"], q_range=(0.0, 2.0)), "bounds and q_range"),
+                        (dict(t_bounds=(0.0, 1.0), t_range=(0.0, 1.0)), "t_bounds and t_range")):
+        with pytest.raises(ValueError, match=f"{names} are the same option"):
+            _ball_scene(**both)
+    with pytest.raises(ValueError, match="`bounds` must be"):
+        _ball_scene(bounds=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
+    # key: the point search's jax.random key; seed=s is key=jax.random.key(s). The witness states
+    # of the build report come from the samples that key draws.
+    args = {"g": 9.81, "e": 0.8}
+    by_seed = hj.contact_system(scene, ["free"], args, seed=3)
+    by_key = hj.contact_system(scene, ["free"], args, key=jax.random.key(3))
+    other = hj.contact_system(scene, ["free"], args, key=jax.random.key(0))
+    assert by_seed.report == by_key.report != other.report
+    with pytest.raises(ValueError, match="key and seed are the same option"):
+        hj.contact_system(scene, ["free"], args, key=jax.random.key(3), seed=3)

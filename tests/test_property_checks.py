@@ -362,10 +362,15 @@ def test_time_varying_guard_is_searched_over_the_window():
         [hj.Transition("wait", "go", guard=lambda t, x, p: 1.0 - t + 0.0 * x[0], name="ring")],
     )
     bounds = {"wait": (-1.0, 1.0), "go": (-1.0, 1.0)}
-    early = hj.check_properties(clock, None, bounds=bounds, t_window=(0.0, 0.5))
+    early = hj.check_properties(clock, None, bounds=bounds, t_bounds=(0.0, 0.5))
     late = hj.check_properties(clock, None, bounds=bounds, t_window=(0.0, 2.0))
     assert early.achievable_transitions == () and late.achievable_transitions == ("ring",)
     assert 1.0 - 1e-8 <= late.achievable[0].t <= 2.0
+    # t_window: a shorthand for t_bounds (the name find_point and Scene use); both at once refused
+    assert late.t_bounds == late.t_window == (0.0, 2.0)
+    assert repr(hj.check_properties(clock, None, bounds=bounds, t_bounds=(0.0, 2.0))) == repr(late)
+    with pytest.raises(ValueError, match="t_bounds and t_window are the same option"):
+        hj.check_properties(clock, None, bounds=bounds, t_bounds=(0.0, 2.0), t_window=(0.0, 2.0))
 
 
 def test_a_domain_with_no_transition_out_blocks_at_its_boundary():

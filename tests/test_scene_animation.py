@@ -36,7 +36,7 @@ def solution():
     plastic floor z >= 0: it lands at sqrt(2 / g) and slides on with the floor's force g."""
     scene = hj.Scene(
         2, lambda q, p: jnp.eye(2), lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["g"] + 0.0 * q[1]]),
-        [hj.Constraint("floor", lambda t, q, p: q[1])], q_range=(0.0, 1.0), dq_range=(-2.0, 2.0),
+        [hj.Constraint("floor", lambda t, q, p: q[1])], bounds=((0.0, 0.0, -2.0, -2.0), (1.0, 1.0, 2.0, 2.0)),
     )
     system = hj.contact_system(scene, ["free"], ARGS)
     return hj.simulate(system, jnp.array([0.0, Z0, VX, 0.0]), "free", 0.0, 1.0, ARGS,

@@ -29,8 +29,7 @@ def armed_floor_system():
         lambda q, p: jnp.eye(2),
         lambda t, q, dq, p: jnp.stack([0.0 * q[0], -p["g"] + 0.0 * q[1]]),
         [floor],
-        q_range=(-1.0, 1.0),
-        dq_range=(-3.0, 3.0),
+        bounds=((-1.0, -1.0, -3.0, -3.0), (1.0, 1.0, 3.0, 3.0)),
         names=("x", "z"),
     )
     return hj.contact_system(scene, ["free"], ARMED_ARGS)

@@ -176,8 +176,7 @@ def wheel():
         scene.mass,
         scene.forces,
         scene.constraints,
-        q_range=scene.q_range,
-        dq_range=(-0.7, 0.7),
+        bounds=(scene.q_range[0] + (-0.7,) * scene.dim, scene.q_range[1] + (0.7,) * scene.dim),
         names=scene.names,
     )
     args = {k: jnp.asarray(v) for k, v in WHEEL_ARGS.items()}
@@ -255,8 +254,7 @@ def test_redundant_contacts_error_names_them():
         lambda q, a: jnp.eye(1),
         lambda t, q, dq, a: -9.8 + 0 * q,
         [hj.Constraint("left", lambda t, q, a: q[0]), hj.Constraint("right", lambda t, q, a: q[0])],
-        q_range=(0.0, 1.0),
-        dq_range=(-1.0, 1.0),
+        bounds=((0.0, -1.0), (1.0, 1.0)),
     )
     with pytest.raises(ValueError, match=r"dependent constraints \['left', 'right'\]"):
         hj.contact_system(scene, [["left", "right"]])

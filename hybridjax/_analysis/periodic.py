@@ -76,11 +76,11 @@ class _ReturnProblem(eqx.Module):
     system: HybridSystem
     args: Any
     ctrl: diffrax.AbstractStepSizeController
-    mode: int = eqx.field(static=True)
+    mode: int = eqx.field(static=True)  # static: Python indices into the system's tuples
     transition: int = eqx.field(static=True)
     t_max: Any
     max_epochs: int = eqx.field(static=True)
-    rtol: float = eqx.field(static=True)
+    rtol: float
 
     def at(self, diff_args) -> "_ReturnProblem":
         """The problem with the parameters' inexact arrays `diff_args` put back."""

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._analysis.search import box_samples, search
+from .._core.names import one_of
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
 from .._definition.validation import domain_sizes
@@ -130,7 +131,12 @@ class PropertyReport:
     modes: tuple[str, ...]
     transitions: tuple[str, ...]
     num_samples: int
-    t_window: tuple[float, float]
+    t_bounds: tuple[float, float]
+
+    @property
+    def t_window(self) -> tuple[float, float]:
+        """`t_bounds` under its other name."""
+        return self.t_bounds
 
     @property
     def disjoint_guards(self) -> bool:
@@ -222,7 +228,7 @@ class PropertyReport:
         ]
 
     def _header(self) -> str:
-        lo, hi = self.t_window
+        lo, hi = self.t_bounds
         return (
             f"Property checks: {len(self.modes)} modes, {len(self.transitions)} transitions, "
             f"{self.num_samples} samples per mode, t in [{lo:g}, {hi:g}]."
@@ -487,7 +493,7 @@ def check_properties(
     args: Any = None,
     *,
     bounds: Mapping,
-    t_window: tuple[float, float] = (0.0, 0.0),
+    t_bounds: tuple[float, float] | None = None,
     num_samples: int = 256,
     key: Any = None,
     margin: float = 1e-6,
@@ -497,6 +503,7 @@ def check_properties(
     num_starts: int = 8,
     max_steps: int = 64,
     max_chain: int = 16,
+    t_window: tuple[float, float] | None = None,
 ) -> PropertyReport:
     r"""Check a hybrid system's properties (A. M. Johnson, "Hybrid Dynamical Systems", section 3)
     by sampling each mode's states and searching locally for counterexamples.
@@ -526,7 +533,7 @@ def check_properties(
     domain, a chain or a cycle comes with a witness state that shows it. A property reported
     as holding only means that no sample, and no local refinement of the best samples, was a
     counterexample: a small or distant counterexample can be missed. The samples cover only
-    the `bounds` given and `t_window`; tangential exits (first derivative zero, a higher one
+    the `bounds` given and `t_bounds`; tangential exits (first derivative zero, a higher one
     negative) are not searched.
 
     **Arguments:**
@@ -534,8 +541,9 @@ def check_properties(
     - `system`, `args`: the system and the `args` its functions take.
     - `bounds`: per mode (name or index), `(lower, upper)` (scalars or `(dim,)` arrays) for
       uniform samples in that box, or a sampler `(key, num) -> (num, dim)`.
-    - `t_window`: `(t0, t1)`: times are sampled and searched in it (time-varying guards,
-      domains and flows); the default `(0, 0)` fixes t = 0.
+    - `t_bounds`: `(t0, t1)`: times are sampled and searched in it (time-varying guards,
+      domains and flows), as in `find_point`; the default `(0, 0)` fixes t = 0. Shorthand:
+      `t_window`.
     - `num_samples`: samples per mode; `key`: a `jax.random` key (default `key(0)`).
     - `margin`: how far a strict inequality must hold (a guard "not containing" a point has
       $g \ge$ `margin`; a flow "leaving" has $\dot a \le -$`margin`).
@@ -565,9 +573,10 @@ def check_properties(
     K = system.num_transitions
     k_t, k_x = jax.random.split(key)
     xs = _mode_samples(system, bounds, k_x, num_samples, dtype)
-    lo, hi = float(t_window[0]), float(t_window[1])
+    t_bounds = one_of("check_properties", t_bounds=t_bounds, t_window=t_window, default=(0.0, 0.0))
+    lo, hi = float(t_bounds[0]), float(t_bounds[1])
     if hi < lo:
-        raise ValueError(f"check_properties: t_window {t_window} must have t0 <= t1.")
+        raise ValueError(f"check_properties: t_bounds {t_bounds} must have t0 <= t1.")
     ts = (
         jax.random.uniform(k_t, xs.shape[:2], dtype, lo, hi) if hi > lo else jnp.full(xs.shape[:2], lo, dtype)
     )
@@ -658,5 +667,5 @@ def check_properties(
         modes=names,
         transitions=labels,
         num_samples=num_samples,
-        t_window=(lo, hi),
+        t_bounds=(lo, hi),
     )

@@ -50,11 +50,12 @@ class SensitivityOptions(eqx.Module):
       intervals of the Sobol' indices.
     """
 
+    # Static: a name, and ints read by numpy/scipy (seed, array sizes).
     sampler: str = eqx.field(static=True, default="sobol")
     seed: int = eqx.field(static=True, default=0)
     chunk_size: int = eqx.field(static=True, default=100_000)
     n_bootstrap: int = eqx.field(static=True, default=200)
-    confidence: float = eqx.field(static=True, default=0.95)
+    confidence: float = 0.95
 
     def __check_init__(self):
         if self.sampler not in SAMPLERS:

@@ -6,6 +6,7 @@ Gamma (directed edges), domains D_I = {a_I >= 0}, flows F_I, guards G_IJ = {g_IJ
 resets R_IJ : G_IJ -> D_J.
 """
 
+import abc
 import html
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -165,106 +166,75 @@ class ZenoCompletion(eqx.Module):
         return f"zeno:{self.source}->{self.target}"
 
 
-class HybridSystem(eqx.Module):
-    """A hybrid dynamical system H = (J, Gamma, D, F, G, R): modes and the transitions between them.
+def _indices(system, edges, role: str) -> tuple[int, ...]:
+    """The mode index of each edge's `role` ("source" or "target"), given by name or index."""
+    index = {m.name: i for i, m in enumerate(system.modes)}
+    return tuple(index[e_ref] if isinstance(e_ref := getattr(e, role), str) else int(e_ref) for e in edges)
 
-    Validation happens here, at construction: unknown or duplicate mode names, and, by
-    abstract evaluation (`jax.eval_shape`, no real call), the flow output shape, scalar
-    guards, scalar-or-vector domains and reset output dimensions. Errors name the mode or
-    transition at fault. Shape checks that need `args` (a flow reading `args["g"]`, say) are
-    repeated by `simulate` with the real `args`; pass `example_args` to run them here.
 
-    **Arguments:**
+class AbstractHybridSystem(eqx.Module):
+    r"""The interface of a hybrid system H = (J, Gamma, D, F, G, R) that the engines and every
+    tool read (A. M. Johnson, "Hybrid Dynamical Systems", eq. (1)): its modes $J$ with their
+    flows $F_I$ and domains $D_I$ (`Mode`), its edges $\Gamma$ with guards $G_{IJ}$ and resets
+    $R_{IJ}$ (`Transition`), and optional Zeno completions.
 
-    - `modes`: a sequence of `Mode`, names unique.
-    - `transitions`: a sequence of `Transition`; a transition's index is its position here,
-      which is also its priority among transitions leaving the same mode.
-    - `completions`: optional `ZenoCompletion`s, at most one per source mode: what a Zeno
-      execution in that mode does at its accumulation point (otherwise it stops with `ZENO`).
-    - `example_args`: optional `args` pytree used only for the shape checks.
+    A subclass gives three attributes and one method; everything else (mode and transition
+    lookups, the source and target indices of each edge, the shape checks) is derived here:
 
-    `system.modes` and `system.transitions` are the tuples given, in order.
+    - `modes`: a tuple of `Mode`, names unique;
+    - `transitions`: a tuple of `Transition` (a transition's index is its position, also its
+      priority among those leaving one mode); sources and targets by mode name or index;
+    - `completions`: a tuple of `ZenoCompletion` (often `()`);
+    - `mode_indexed()`: the system's evaluation for a traced mode index (a `ModeIndexed`), or
+      `None` to have the engines evaluate each mode's and transition's own functions.
+
+    `HybridSystem` is the general implementation (it validates everything at construction);
+    `ContactSystem` the one `contact_system` builds from a `Scene`. A subclass of this class
+    is simulated by `simulate` like either; `simulate` runs the shape checks with the real `args`.
+
+    !!! Example
+
+        ```python
+        class Ball(hj.AbstractHybridSystem):
+            modes: tuple = (hj.Mode("flight", lambda t, x, a: jnp.stack([x[1], -a["g"] + 0 * x[0]]), 2),)
+            transitions: tuple = (
+                hj.Transition("flight", "flight", guard=lambda t, x, a: x[0],
+                              reset=lambda t, x, a: jnp.stack([x[0], -a["e"] * x[1]])),
+            )
+            completions: tuple = ()
+
+            def mode_indexed(self):
+                return None
+        ```
     """
 
-    modes: tuple[Mode, ...]
-    transitions: tuple[Transition, ...]
-    sources: tuple[int, ...] = eqx.field(static=True)
-    targets: tuple[int, ...] = eqx.field(static=True)
-    completions: tuple[ZenoCompletion, ...]
-    completion_sources: tuple[int, ...] = eqx.field(static=True)
-    completion_targets: tuple[int, ...] = eqx.field(static=True)
+    modes: eqx.AbstractVar[tuple[Mode, ...]]
+    transitions: eqx.AbstractVar[tuple[Transition, ...]]
+    completions: eqx.AbstractVar[tuple[ZenoCompletion, ...]]
 
-    def __init__(
-        self,
-        modes: Sequence[Mode],
-        transitions: Sequence[Transition] = (),
-        *,
-        completions: Sequence[ZenoCompletion] = (),
-        example_args: Any = None,
-    ):
-        modes = tuple(modes)
-        transitions = tuple(transitions)
-        if len(modes) == 0:
-            raise ValueError("A HybridSystem needs at least one Mode.")
-        for i, m in enumerate(modes):
-            if not isinstance(m, Mode):
-                raise TypeError(f"modes[{i}] is {type(m).__name__}, expected hybridjax.Mode.")
-        for k, tr in enumerate(transitions):
-            if not isinstance(tr, Transition):
-                raise TypeError(
-                    f"transitions[{k}] is {type(tr).__name__}, expected hybridjax.Transition."
-                )
-        index: dict[str, int] = {}
-        for i, m in enumerate(modes):
-            if m.name in index:
-                raise ValueError(
-                    f"Duplicate mode name '{m.name}' (modes[{index[m.name]}] and modes[{i}])."
-                )
-            index[m.name] = i
+    @abc.abstractmethod
+    def mode_indexed(self) -> "ModeIndexed | None":
+        """The system's evaluation for a traced mode index (`ModeIndexed`), or None: the engines
+        then evaluate the modes' and transitions' own functions branch by branch."""
 
-        def resolve(k: int, tr, role: str, kind: str = "Transition") -> int:
-            ref = getattr(tr, role)
-            if isinstance(ref, str):
-                if ref not in index:
-                    raise ValueError(
-                        f"{kind} {k} ({tr.label}): unknown {role} mode '{ref}'; "
-                        f"known modes: {sorted(index)}."
-                    )
-                return index[ref]
-            if not 0 <= int(ref) < len(modes):
-                raise ValueError(
-                    f"{kind} {k} ({tr.label}): {role} index {ref} out of range "
-                    f"for {len(modes)} modes."
-                )
-            return int(ref)
+    # ------------------------------------------------------------------ edges by index
+    @property
+    def sources(self) -> tuple[int, ...]:
+        """The source mode index of each transition."""
+        return _indices(self, self.transitions, "source")
 
-        self.modes = modes
-        self.transitions = transitions
-        self.sources = tuple(resolve(k, tr, "source") for k, tr in enumerate(transitions))
-        self.targets = tuple(resolve(k, tr, "target") for k, tr in enumerate(transitions))
-        completions = tuple(completions)
-        for c, comp in enumerate(completions):
-            if not isinstance(comp, ZenoCompletion):
-                raise TypeError(
-                    f"completions[{c}] is {type(comp).__name__}, expected hybridjax.ZenoCompletion."
-                )
-        self.completions = completions
-        self.completion_sources = tuple(
-            resolve(c, comp, "source", "Completion") for c, comp in enumerate(completions)
-        )
-        self.completion_targets = tuple(
-            resolve(c, comp, "target", "Completion") for c, comp in enumerate(completions)
-        )
-        if len(set(self.completion_sources)) != len(completions):
-            raise ValueError("At most one ZenoCompletion per source mode.")
-        for name, reset, i, j in self.jumps():
-            n_i, n_j = modes[i].dim, modes[j].dim
-            if reset is _identity_reset and n_i != n_j:
-                raise ValueError(
-                    f"{name}: the default identity reset needs equal dimensions, but source "
-                    f"has dim {n_i} and target dim {n_j}; give a `reset`."
-                )
-        check_function_shapes(self, example_args, dtype=jnp.result_type(float), strict=False)
+    @property
+    def targets(self) -> tuple[int, ...]:
+        """The target mode index of each transition."""
+        return _indices(self, self.transitions, "target")
+
+    @property
+    def completion_sources(self) -> tuple[int, ...]:
+        return _indices(self, self.completions, "source")
+
+    @property
+    def completion_targets(self) -> tuple[int, ...]:
+        return _indices(self, self.completions, "target")
 
     # ------------------------------------------------------------------ lookups
     @property
@@ -331,11 +301,6 @@ class HybridSystem(eqx.Module):
         """Indices of the transitions leaving `mode`, in priority order."""
         return tuple(k for k, s in enumerate(self.sources) if s == mode)
 
-    def mode_indexed(self) -> "ModeIndexed | None":
-        """The system's evaluation for a traced mode index (`ModeIndexed`), or None: the engines
-        then evaluate the modes' and transitions' own functions branch by branch."""
-        return None
-
     def check(self, args: Any = None, dtype: Any = None) -> None:
         """Run the shape checks with these `args` (raises ValueError naming the culprit).
 
@@ -380,6 +345,111 @@ class HybridSystem(eqx.Module):
             src, tgt = self.modes[self.sources[k]].name, self.modes[self.targets[k]].name
             lines.append(f"  transition {k} '{tr.label}': {src} -> {tgt}")
         return "\n".join(lines)
+
+
+class HybridSystem(AbstractHybridSystem):
+    """A hybrid dynamical system H = (J, Gamma, D, F, G, R): modes and the transitions between them.
+
+    Validation happens here, at construction: unknown or duplicate mode names, and, by
+    abstract evaluation (`jax.eval_shape`, no real call), the flow output shape, scalar
+    guards, scalar-or-vector domains and reset output dimensions. Errors name the mode or
+    transition at fault. Shape checks that need `args` (a flow reading `args["g"]`, say) are
+    repeated by `simulate` with the real `args`; pass `example_args` to run them here.
+
+    **Arguments:**
+
+    - `modes`: a sequence of `Mode`, names unique.
+    - `transitions`: a sequence of `Transition`; a transition's index is its position here,
+      which is also its priority among transitions leaving the same mode.
+    - `completions`: optional `ZenoCompletion`s, at most one per source mode: what a Zeno
+      execution in that mode does at its accumulation point (otherwise it stops with `ZENO`).
+    - `example_args`: optional `args` pytree used only for the shape checks.
+
+    `system.modes` and `system.transitions` are the tuples given, in order.
+    """
+
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[ZenoCompletion, ...]
+
+    def __init__(
+        self,
+        modes: Sequence[Mode],
+        transitions: Sequence[Transition] = (),
+        *,
+        completions: Sequence[ZenoCompletion] = (),
+        example_args: Any = None,
+    ):
+        self.modes = tuple(modes)
+        self.transitions = tuple(transitions)
+        self.completions = tuple(completions)
+        validate_system(self, example_args)
+
+    def mode_indexed(self) -> None:
+        """None: the engines evaluate each mode's and transition's own functions."""
+        return None
+
+
+def validate_system(system: AbstractHybridSystem, example_args: Any = None) -> None:
+    """The construction-time checks of a system: modes and transitions of the right types,
+    unique mode names, sources and targets that exist, at most one Zeno completion per mode,
+    and (by abstract evaluation) the functions' shapes; errors name the mode or transition."""
+    modes, transitions, completions = system.modes, system.transitions, system.completions
+    if len(modes) == 0:
+        raise ValueError("A HybridSystem needs at least one Mode.")
+    for i, m in enumerate(modes):
+        if not isinstance(m, Mode):
+            raise TypeError(f"modes[{i}] is {type(m).__name__}, expected hybridjax.Mode.")
+    for k, tr in enumerate(transitions):
+        if not isinstance(tr, Transition):
+            raise TypeError(
+                f"transitions[{k}] is {type(tr).__name__}, expected hybridjax.Transition."
+            )
+    index: dict[str, int] = {}
+    for i, m in enumerate(modes):
+        if m.name in index:
+            raise ValueError(
+                f"Duplicate mode name '{m.name}' (modes[{index[m.name]}] and modes[{i}])."
+            )
+        index[m.name] = i
+
+    def resolve(k: int, tr, role: str, kind: str = "Transition") -> int:
+        ref = getattr(tr, role)
+        if isinstance(ref, str):
+            if ref not in index:
+                raise ValueError(
+                    f"{kind} {k} ({tr.label}): unknown {role} mode '{ref}'; "
+                    f"known modes: {sorted(index)}."
+                )
+            return index[ref]
+        if not 0 <= int(ref) < len(modes):
+            raise ValueError(
+                f"{kind} {k} ({tr.label}): {role} index {ref} out of range "
+                f"for {len(modes)} modes."
+            )
+        return int(ref)
+
+    for k, tr in enumerate(transitions):
+        resolve(k, tr, "source")
+        resolve(k, tr, "target")
+    for c, comp in enumerate(completions):
+        if not isinstance(comp, ZenoCompletion):
+            raise TypeError(
+                f"completions[{c}] is {type(comp).__name__}, expected hybridjax.ZenoCompletion."
+            )
+    completion_sources = [resolve(c, comp, "source", "Completion") for c, comp in enumerate(completions)]
+    for c, comp in enumerate(completions):
+        resolve(c, comp, "target", "Completion")
+    if len(set(completion_sources)) != len(completions):
+        raise ValueError("At most one ZenoCompletion per source mode.")
+    for name, reset, i, j in system.jumps():
+        n_i, n_j = modes[i].dim, modes[j].dim
+        if reset is _identity_reset and n_i != n_j:
+            raise ValueError(
+                f"{name}: the default identity reset needs equal dimensions, but source "
+                f"has dim {n_i} and target dim {n_j}; give a `reset`."
+            )
+    check_function_shapes(system, example_args, dtype=jnp.result_type(float), strict=False)
 
 
 def as_mode_index(system: HybridSystem, mode0) -> jax.Array:

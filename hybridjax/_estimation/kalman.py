@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._core.names import one_of
 from .._definition.kernels import dispatch
-from .._definition.system import HybridSystem, Mode, Transition, as_mode_index
+from .._definition.system import AbstractHybridSystem, HybridSystem, Mode, Transition, as_mode_index
 from .._solve.simulate import simulate
 
 
@@ -179,7 +179,7 @@ class SaltedKalmanFilter(eqx.Module):
         max_steps: int = 4096,
         max_events: int | None = None,
     ):
-        if not isinstance(system, HybridSystem):
+        if not isinstance(system, AbstractHybridSystem):
             raise TypeError(f"SaltedKalmanFilter: system must be a hybridjax.HybridSystem, "
                             f"got {type(system).__name__}.")
         if system.completions:

@@ -23,7 +23,7 @@ import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
 from .._core.names import one_of
-from .._definition.system import HybridSystem, Mode, Transition
+from .._definition.system import AbstractHybridSystem, HybridSystem, Mode, Transition
 from .._solution.solution import Solution
 from .._solve.simulate import simulate
 
@@ -91,7 +91,7 @@ class Shooting(eqx.Module):
     def __init__(self, system, cost, x0, mode0, *, t0=0.0, t1=1.0, args=None, transitions=None,
                  lower=None, upper=None, solver=diffrax.Tsit5(), stepsize_controller=None,
                  saveat=None, max_epochs=16, max_steps=4096, max_backtracks=8):
-        if not isinstance(system, HybridSystem):
+        if not isinstance(system, AbstractHybridSystem):
             raise TypeError(
                 f"Shooting: system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
         if not callable(cost):

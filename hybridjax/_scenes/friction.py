@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 from jax import lax
+from jaxtyping import PRNGKeyArray
 
 from .._analysis.search import box_samples
 from .._core import small_linalg as small_linalg
@@ -70,14 +71,16 @@ from .scene import (
     INCONSISTENT,
     UNBUILT,
     UNILATERAL,
-    ContactSystem,
+    AbstractContactSystem,
     Scene,
     _identity,
-    _range,
     _releases,
+    _set_fields,
     _terminal_domain,
     _terminal_flow,
+    point_search_key,
     run_search,
+    sample_box,
     witness_text,
 )
 
@@ -299,6 +302,8 @@ def stop_goes(which, inside, subsets, to_stick: bool, tied: tuple):
 class _StateFunctions(eqx.Module):
     """Flow, forces and guards of one friction state (static descriptors)."""
 
+    # Static: a mode's flow and guards are these objects, leaves of the system's pytree; the
+    # scene (callables) and the state (Python indices) choose the code traced.
     scene: Scene = eqx.field(static=True)
     state: tuple = eqx.field(static=True)
 
@@ -390,6 +395,7 @@ class _FrictionImpact(eqx.Module):
     then the frictional contacts of the new set slip by the sign of their tangential velocity.
     Outcomes are (candidate, signs), numbered by `outcome_id`."""
 
+    # Static: a reset of the system's pytree; callables and Python indices.
     scene: Scene = eqx.field(static=True)
     source: tuple = eqx.field(static=True)
     k: int = eqx.field(static=True)
@@ -628,17 +634,29 @@ def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
 # ----------------------------------------------------------------------------- the system
 
 
-class FrictionSystem(ContactSystem):
-    r"""The `ContactSystem` of a scene with friction: `states` gives, for each mode, the state of
+class FrictionSystem(AbstractContactSystem):
+    r"""The contact system of a scene with friction (as `ContactSystem`, with the same fields and
+    methods): `states` gives, for each mode, the state of
     every constraint (`None` open, `"held"`, `"stick"`, `"slip+"`, `"slip-"`; `None` for the
     whole entry of a terminal mode). `contact_forces` reports a slipping contact's tangential
     column as its friction force $-\mu s \lambda_n$."""
 
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[()]
+    # Static: the scene (callables), names, report lines and the evaluation's tables.
+    scene: Scene = eqx.field(static=True)
+    contact_sets: tuple = eqx.field(static=True)
+    least_norm_modes: tuple = eqx.field(static=True)
+    report: tuple = eqx.field(static=True)
+    achievable: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+    evaluation: "FrictionEvaluation | None" = eqx.field(static=True)
     states: tuple = eqx.field(static=True)
 
-    def __init__(self, modes, transitions, *, states, **kwargs):
-        super().__init__(modes, transitions, **kwargs)
+    def __init__(self, modes, transitions, *, states, evaluation=None, **fields):
         self.states = states
+        _set_fields(self, modes, transitions, evaluation=evaluation, **fields)
 
     def _force_function(self) -> Callable:
         built = [(m, s) for m, s in enumerate(self.states) if s is not None]
@@ -668,7 +686,7 @@ def friction_system(
     num_starts: int = 8,
     margin: float = 1e-3,
     tol: float = 1e-14,
-    seed: int = 0,
+    key: PRNGKeyArray | None = None,
     redundant: str = "error",
     max_modes: int = 64,
     relabels: Sequence = (),
@@ -699,10 +717,7 @@ def friction_system(
         jnp.arange(len(values)),
         jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
     )
-    (qlo, qhi), (vlo, vhi) = _range(scene.q_range, n, "q_range"), _range(scene.dq_range, n, "dq_range")
-    lo = jnp.asarray(qlo + vlo + (scene.t_range[0],), dtype)
-    hi = jnp.asarray(qhi + vhi + (scene.t_range[1],), dtype)
-    pts = box_samples(jax.random.key(seed), lo, hi, num_samples)
+    pts = box_samples(point_search_key(key, None), *sample_box(scene, dtype), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
     def search(qs):
@@ -807,6 +822,8 @@ def friction_system(
 # ----------------------------------------------------------------------------- mode-indexed evaluation
 
 
+# `FrictionSlot` and `FrictionReset` are plain Python data read while a step is traced; they live
+# in the static fields of `FrictionEvaluation`, so their own fields are ordinary ones.
 class FrictionSlot(eqx.Module):
     """One watched function of a friction mode, as `FrictionEvaluation` reads it: `kind`
     "painleve" (the slip consistency), "impact" (constraint `j`'s gap where the impact's
@@ -814,15 +831,15 @@ class FrictionSlot(eqx.Module):
     `d` lambda_t of `j` + `offset`), "stop" (s v_t of slipping `j` of `state` where the stop
     goes to stick with `tied` (`to_stick`) or to reverse), or "constant" (`offset`)."""
 
-    kind: str = eqx.field(static=True)
-    j: int = eqx.field(static=True, default=0)
-    offset: float = eqx.field(static=True, default=0.0)
-    d: float = eqx.field(static=True, default=0.0)
-    ids: tuple = eqx.field(static=True, default=())
-    impact: Any = eqx.field(static=True, default=None)
-    state: tuple | None = eqx.field(static=True, default=None)
-    to_stick: bool = eqx.field(static=True, default=False)
-    tied: tuple = eqx.field(static=True, default=())
+    kind: str
+    j: int = 0
+    offset: float = 0.0
+    d: float = 0.0
+    ids: tuple = ()
+    impact: Any = None
+    state: tuple | None = None
+    to_stick: bool = False
+    tied: tuple = ()
 
 
 class FrictionReset(eqx.Module):
@@ -830,10 +847,10 @@ class FrictionReset(eqx.Module):
     `rows` held (restitution of constraint `hit`, when `restitute`) and least-norm impulses
     when `least_norm` (a projection onto a stick state's rows is a plastic impact)."""
 
-    rows: tuple | None = eqx.field(static=True, default=None)
-    hit: int = eqx.field(static=True, default=0)
-    restitute: bool = eqx.field(static=True, default=False)
-    least_norm: bool = eqx.field(static=True, default=False)
+    rows: tuple | None = None
+    hit: int = 0
+    restitute: bool = False
+    least_norm: bool = False
 
 
 class FrictionEvaluation(ModeIndexed):
@@ -843,6 +860,7 @@ class FrictionEvaluation(ModeIndexed):
     discrete choices (an impact's outcome, where a stopping contact goes) are computed only where
     one of the current mode's guards that reads them is at or below zero."""
 
+    # Static: the scene's Python callables and the tables that choose the code traced.
     scene: Scene = eqx.field(static=True)
     states: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)

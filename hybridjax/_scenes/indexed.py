@@ -34,6 +34,10 @@ from .mechanics import (
 # Where a slot's value comes from: a gap, a contact force, a constant, or a selection guard.
 GAP, FORCE, CONSTANT, SELECTED = "gap", "force", "constant", "selected"
 
+# The records below (`ReleaseChoice`, `SlotSpec`, `ResetSpec`) are plain Python data read while a
+# step is traced; they live in the static fields of `ContactEvaluation`, so their own fields are
+# ordinary ones.
+
 
 class ReleaseChoice(eqx.Module):
     """An impact's release candidates on the rows of all the scene's constraints, as
@@ -42,10 +46,10 @@ class ReleaseChoice(eqx.Module):
     (`involved`: their indices, in the order of the impact's own rows) and the gap rows of the
     unilateral constraints involved (impulses >= 0 and released rates >= 0 are asked there)."""
 
-    held: tuple = eqx.field(static=True)
-    hit: int = eqx.field(static=True)
-    involved: tuple = eqx.field(static=True)
-    gap_rows: tuple = eqx.field(static=True)
+    held: tuple
+    hit: int
+    involved: tuple
+    gap_rows: tuple
 
 
 class SlotSpec(eqx.Module):
@@ -55,11 +59,11 @@ class SlotSpec(eqx.Module):
     |gap| + 1 elsewhere: the impacts that share one guard $a_k \le 0$ and differ in which
     contacts the impact releases)."""
 
-    kind: str = eqx.field(static=True)
-    index: int = eqx.field(static=True, default=0)
-    offset: float = eqx.field(static=True, default=0.0)
-    choice: ReleaseChoice | None = eqx.field(static=True, default=None)
-    chosen: tuple = eqx.field(static=True, default=())
+    kind: str
+    index: int = 0
+    offset: float = 0.0
+    choice: ReleaseChoice | None = None
+    chosen: tuple = ()
 
 
 class ResetSpec(eqx.Module):
@@ -67,9 +71,9 @@ class ResetSpec(eqx.Module):
     constraints `held` held (None: the identity), then relabelling map `relabel` (an index
     into `ContactEvaluation.relabel_maps`, -1 for none)."""
 
-    held: tuple | None = eqx.field(static=True, default=None)
-    hit: int = eqx.field(static=True, default=0)
-    relabel: int = eqx.field(static=True, default=-1)
+    held: tuple | None = None
+    hit: int = 0
+    relabel: int = -1
 
 
 class ContactEvaluation(ModeIndexed):
@@ -81,6 +85,7 @@ class ContactEvaluation(ModeIndexed):
     - `least_norm`: least-norm contact forces (regularised solve) in every mode.
     """
 
+    # Static: the scene's Python callables and the index tables that choose the code traced.
     scene: object = eqx.field(static=True)
     mode_sets: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)

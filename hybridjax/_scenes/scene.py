@@ -42,6 +42,7 @@ that no release candidate solves (dependent constraints, or rounding at a tie): 
 unbuilt candidates, or in a terminal mode `"inconsistent: impact of <k> in <set>"`.
 """
 
+import abc
 import functools
 import itertools
 from collections.abc import Callable, Sequence
@@ -52,11 +53,12 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._analysis.search import box_samples, find_point
 from .._core import small_linalg as small_linalg
-from .._definition.system import HybridSystem, Mode, Transition
+from .._core.names import one_of
+from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
 from .indexed import CONSTANT, FORCE, GAP, SELECTED, ContactEvaluation, ReleaseChoice, ResetSpec, SlotSpec
 from .mechanics import (
     _INDEPENDENT,
@@ -101,6 +103,51 @@ def _range(value, dim, what):
     return tuple(map(float, lo)), tuple(map(float, hi))
 
 
+def _state_bounds(bounds, q_range, dq_range, dim):
+    """The sampling box of x = (q, dq) as two length-2n tuples, from `bounds` (lower, upper:
+    scalars or length 2n) or from its shorthands `q_range`, `dq_range` (each over length n)."""
+    if bounds is not None and (q_range is not None or dq_range is not None):
+        given = " and ".join(k for k, v in (("bounds", bounds), ("q_range", q_range), ("dq_range", dq_range))
+                             if v is not None)
+        raise ValueError(
+            f"Scene: {given} are the same option under two names; pass `bounds` (the box of "
+            "x = (q, dq)) or its shorthands `q_range`, `dq_range`, not both."
+        )
+    if bounds is None:
+        (qlo, qhi) = _range((-1.0, 1.0) if q_range is None else q_range, dim, "q_range")
+        (vlo, vhi) = _range((-1.0, 1.0) if dq_range is None else dq_range, dim, "dq_range")
+        return qlo + vlo, qhi + vhi
+    try:
+        lo, hi = bounds
+        lo = np.broadcast_to(np.asarray(lo, dtype=float), (2 * dim,))
+        hi = np.broadcast_to(np.asarray(hi, dtype=float), (2 * dim,))
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"Scene: `bounds` must be (lower, upper) over x = (q, dq), each a scalar or of length "
+            f"{2 * dim}, got {bounds!r}."
+        ) from None
+    if not np.all(hi >= lo):
+        raise ValueError(f"Scene: `bounds` needs lower <= upper componentwise, got {lo} and {hi}.")
+    return tuple(map(float, lo)), tuple(map(float, hi))
+
+
+def point_search_key(key, seed) -> PRNGKeyArray:
+    """The point search's `jax.random` key: `key`, or `jax.random.key(seed)` from the shorthand
+    `seed`, or `jax.random.key(0)`; passing both is a ValueError naming them."""
+    one_of("contact_system", key=key, seed=seed, default=None)  # both passed: a ValueError
+    if seed is not None:
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+            raise TypeError(f"contact_system: `seed` must be an int, got {seed!r}.")
+        return jax.random.key(int(seed))
+    return jax.random.key(0) if key is None else key
+
+
+def sample_box(scene: "Scene", dtype) -> tuple[Array, Array]:
+    """The lower and upper corners of the builder's sampling box of (q, dq, t), (2n + 1,) each."""
+    (lo, hi), (t_lo, t_hi) = scene.bounds, scene.t_bounds
+    return jnp.asarray(lo + (t_lo,), dtype), jnp.asarray(hi + (t_hi,), dtype)
+
+
 class Constraint(eqx.Module):
     r"""A named constraint $a(t, q, \text{args})$ of a `Scene`.
 
@@ -140,9 +187,9 @@ class Constraint(eqx.Module):
     name: str = eqx.field(static=True)
     fn: Callable = eqx.field(static=True)
     kind: str = eqx.field(static=True, default=UNILATERAL)
-    restitution: float | Callable | None = eqx.field(static=True, default=None)
+    restitution: float | Callable | None = None
     tangent: Callable | None = eqx.field(static=True, default=None)
-    friction: float | Callable | None = eqx.field(static=True, default=None)
+    friction: float | Callable | None = None
     armed: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
@@ -209,9 +256,12 @@ class Scene(eqx.Module):
     - `mass`: `mass(q, args) -> (n, n)`, symmetric positive definite.
     - `forces`: `forces(t, q, dq, args) -> (n,)`, gravity, springs, controls.
     - `constraints`: a sequence of `Constraint`, names unique.
-    - `q_range`, `dq_range`: `(lower, upper)` (scalars or length-$n$) boxes the builder samples
-      states from when it searches for achievable transitions.
-    - `t_range`: `(t_lo, t_hi)`, the times sampled (for time-varying constraints or forces).
+    - `bounds`: `(lower, upper)`, the box of states $x = (q, \dot q)$ the builder samples when
+      it searches for achievable transitions, each a scalar or a length-$2n$ sequence (the form of
+      `check_properties`' per-mode `bounds`); default $[-1, 1]^{2n}$. Shorthands: `q_range`,
+      `dq_range`, each `(lower, upper)` (scalars or length-$n$) for $q$ and $\dot q$ alone.
+    - `t_bounds`: `(t_lo, t_hi)`, the times sampled (for time-varying constraints or forces), as
+      `find_point`'s `t_bounds`; default `(0, 0)`. Shorthand: `t_range`.
     - `names`: optional names of the coordinates (plot labels of $q$; $\dot q$'s get a `d`).
     - `velocity_terms`: add the Coriolis and centrifugal forces of $M(q)$,
       $-\dot M \dot q + \tfrac12 \partial_q(\dot q^\top M \dot q)$ (the Euler-Lagrange
@@ -225,7 +275,7 @@ class Scene(eqx.Module):
         ball = hj.Scene(
             dim=1, mass=lambda q, args: jnp.eye(1), forces=lambda t, q, dq, args: -args["g"] + 0 * q,
             constraints=[hj.Constraint("floor", lambda t, q, args: q[0], restitution=0.8)],
-            q_range=(0.0, 2.0), dq_range=(-5.0, 5.0),
+            bounds=((0.0, -5.0), (2.0, 5.0)),   # q in [0, 2], dq in [-5, 5]
         )
         ```
     """
@@ -234,15 +284,61 @@ class Scene(eqx.Module):
     mass: Callable = eqx.field(static=True)
     forces: Callable = eqx.field(static=True)
     constraints: tuple[Constraint, ...] = eqx.field(static=True, converter=tuple)
-    q_range: tuple = eqx.field(static=True, default=(-1.0, 1.0), converter=_nested_tuple)
-    dq_range: tuple = eqx.field(static=True, default=(-1.0, 1.0), converter=_nested_tuple)
-    t_range: tuple = eqx.field(static=True, default=(0.0, 0.0), converter=_nested_tuple)
-    names: tuple[str, ...] | None = eqx.field(static=True, default=None, converter=_nested_tuple)
-    velocity_terms: bool = eqx.field(static=True, default=True)
+    # The sampling boxes: Python floats read by the builder (numpy), ordinary fields.
+    bounds: tuple[tuple[float, ...], tuple[float, ...]]
+    t_bounds: tuple[float, float]
+    names: tuple[str, ...] | None = eqx.field(static=True)
+    velocity_terms: bool = eqx.field(static=True)  # chooses the code traced
+
+    def __init__(
+        self,
+        dim: int,
+        mass: Callable,
+        forces: Callable,
+        constraints: Sequence[Constraint],
+        bounds: tuple | None = None,
+        t_bounds: tuple | None = None,
+        names: Sequence[str] | None = None,
+        velocity_terms: bool = True,
+        *,
+        q_range: tuple | None = None,
+        dq_range: tuple | None = None,
+        t_range: tuple | None = None,
+    ):
+        if isinstance(dim, bool) or not isinstance(dim, (int, np.integer)) or dim < 1:
+            raise ValueError(f"Scene: `dim` must be a positive int, got {dim!r}.")
+        self.dim, self.mass, self.forces = int(dim), mass, forces
+        self.constraints = tuple(constraints)
+        self.bounds = _state_bounds(bounds, q_range, dq_range, self.dim)
+        t_bounds = one_of("Scene", t_bounds=t_bounds, t_range=t_range, default=(0.0, 0.0))
+        try:
+            t_lo, t_hi = map(float, t_bounds)
+        except (TypeError, ValueError):
+            raise ValueError(f"Scene: `t_bounds` must be (t_lo, t_hi), got {t_bounds!r}.") from None
+        if not t_lo <= t_hi:
+            raise ValueError(f"Scene: `t_bounds` must be (t_lo, t_hi) with t_lo <= t_hi, got {t_bounds!r}.")
+        self.t_bounds = (t_lo, t_hi)
+        self.names = _nested_tuple(names)
+        self.velocity_terms = velocity_terms
+
+    @property
+    def q_range(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The $q$ part of `bounds`, `(lower, upper)` of length $n$ each."""
+        n = self.dim
+        return self.bounds[0][:n], self.bounds[1][:n]
+
+    @property
+    def dq_range(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        r"""The $\dot q$ part of `bounds`, `(lower, upper)` of length $n$ each."""
+        n = self.dim
+        return self.bounds[0][n:], self.bounds[1][n:]
+
+    @property
+    def t_range(self) -> tuple[float, float]:
+        """`t_bounds` under its other name."""
+        return self.t_bounds
 
     def __check_init__(self):
-        if isinstance(self.dim, bool) or not isinstance(self.dim, (int, np.integer)) or self.dim < 1:
-            raise ValueError(f"Scene: `dim` must be a positive int, got {self.dim!r}.")
         if not callable(self.mass) or not callable(self.forces):
             raise TypeError("Scene: `mass` and `forces` must be callable.")
         seen = set()
@@ -256,12 +352,6 @@ class Scene(eqx.Module):
             seen.add(c.name)
         if not self.constraints:
             raise ValueError("Scene: give at least one Constraint.")
-        for what in ("q_range", "dq_range"):
-            _range(getattr(self, what), self.dim, what)
-        if len(self.t_range) != 2 or not self.t_range[0] <= self.t_range[1]:
-            raise ValueError(
-                f"Scene: `t_range` must be (t_lo, t_hi) with t_lo <= t_hi, got {self.t_range!r}."
-            )
         if self.names is not None and len(self.names) != self.dim:
             raise ValueError(f"Scene: `names` needs {self.dim} entries, got {len(self.names)}.")
         if not isinstance(self.velocity_terms, bool):
@@ -367,6 +457,8 @@ class _Impact(eqx.Module):
     """Impact of constraint `k` in contact set `A` with release candidate `R`, on the constraint
     indices `order` (A's, then k); static description, functions of (t, x, args)."""
 
+    # Static: a transition's reset is this object, part of the system's pytree; the scene
+    # (callables) and the Python indices choose the code traced.
     scene: Scene = eqx.field(static=True)
     source: tuple = eqx.field(static=True)  # sorted indices of A
     k: int = eqx.field(static=True)
@@ -483,6 +575,7 @@ class _ModeFunctions(eqx.Module):
     constraints only (the mode's own functions; `ContactEvaluation` solves with all rows,
     masked, for a traced mode)."""
 
+    # Static: a mode's flow is this object, part of the system's pytree; callables and indices.
     scene: Scene = eqx.field(static=True)
     held: tuple = eqx.field(static=True)
     least_norm: bool = eqx.field(static=True)
@@ -628,38 +721,22 @@ def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
 # ----------------------------------------------------------------------------- the system
 
 
-class ContactSystem(HybridSystem):
-    """The hybrid system of a `Scene`, built by `contact_system`: an ordinary `HybridSystem`
-    (every tool works on it) whose modes are contact sets, with what the builder found.
+class AbstractContactSystem(AbstractHybridSystem):
+    """A hybrid system built from a `Scene`, whose modes are contact sets: what `ContactSystem`
+    and `FrictionSystem` share (the build report, the evaluation for a traced mode, the contact
+    forces along a solution). Each gives its fields and `_force_function`."""
 
-    - `scene`: the scene.
-    - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
-      `"unbuilt: <set>"` modes).
-    - `report`: the lines of the build report (built transitions with a witness state, pruned
-      transitions and sets with the reason); the repr prints them.
-    - `contact_forces(sol)`: the contact forces at the solution's saved states.
-    """
+    scene: eqx.AbstractVar[Scene]
+    contact_sets: eqx.AbstractVar[tuple]
+    least_norm_modes: eqx.AbstractVar[tuple]
+    report: eqx.AbstractVar[tuple]
+    achievable: eqx.AbstractVar[tuple]
+    form: eqx.AbstractVar[str]
+    evaluation: eqx.AbstractVar[Any]
 
-    scene: Scene = eqx.field(static=True)
-    contact_sets: tuple = eqx.field(static=True)
-    least_norm_modes: tuple = eqx.field(static=True)
-    report: tuple = eqx.field(static=True)
-    achievable: tuple = eqx.field(static=True)
-    form: str = eqx.field(static=True)
-    evaluation: ContactEvaluation | None = eqx.field(static=True)
-
-    def __init__(
-        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
-        evaluation=None,
-    ):  # fmt: skip
-        super().__init__(modes, transitions)
-        self.scene = scene
-        self.contact_sets = contact_sets
-        self.least_norm_modes = least_norm_modes
-        self.report = report
-        self.achievable = achievable
-        self.form = form
-        self.evaluation = evaluation
+    @abc.abstractmethod
+    def _force_function(self) -> Callable:
+        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
 
     def mode_indexed(self) -> ContactEvaluation | None:
         """The one masked evaluation for a traced mode (`form="mask"`), or None (`"branch"`)."""
@@ -677,28 +754,6 @@ class ContactSystem(HybridSystem):
     def built_sets(self) -> tuple[frozenset, ...]:
         """The contact sets built as modes (sets of constraint names)."""
         return tuple(frozenset(s) for s in self.contact_sets if s is not None)
-
-    def _force_function(self) -> Callable:
-        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
-        scene, K = self.scene, len(self.scene.constraints)
-        fns, owners = rows(scene, range(K))
-        table = np.zeros((self.num_modes, K))
-        for m, s in enumerate(self.contact_sets):
-            for name in s or ():
-                table[m, scene.index(name)] = 1.0
-        table = table[:, np.asarray(owners, dtype=int)]
-        least_norm = any(self.least_norm_modes)
-        n = scene.dim
-
-        def one(t, y, mode, args):
-            ok = (mode >= 0) & jnp.isfinite(t)
-            mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
-            y = jnp.where(ok, y, 0.0)
-            t = jnp.where(ok, t, 0.0)
-            _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
-            return jnp.where(ok, lam * mask, jnp.nan)
-
-        return one
 
     def contact_forces(self, sol, args: Any = None) -> Float[Array, "*batch saves K"]:
         r"""The contact forces $\lambda$ (one column per constraint, in the scene's order, then one
@@ -727,6 +782,71 @@ class ContactSystem(HybridSystem):
 
         lines = "<br>".join(html.escape(line) for line in self.report)
         return super()._repr_html_() + f"<div><pre>{lines}</pre></div>"
+
+
+def _set_fields(system, modes, transitions, **fields) -> None:
+    """Set a contact system's fields in its `__init__` (no Zeno completions), then validate it as
+    `HybridSystem` does."""
+    system.modes, system.transitions, system.completions = tuple(modes), tuple(transitions), ()
+    for name, value in fields.items():
+        setattr(system, name, value)
+    validate_system(system)
+
+
+class ContactSystem(AbstractContactSystem):
+    """The hybrid system of a `Scene`, built by `contact_system`: an `AbstractHybridSystem`
+    (every tool works on it, as on a `HybridSystem`) whose modes are contact sets, with what the
+    builder found. It is validated at construction as a `HybridSystem` is.
+
+    - `scene`: the scene.
+    - `contact_sets`: for each mode, the names of its held constraints (`None` for the terminal
+      `"unbuilt: <set>"` modes).
+    - `report`: the lines of the build report (built transitions with a witness state, pruned
+      transitions and sets with the reason); the repr prints them.
+    - `contact_forces(sol)`: the contact forces at the solution's saved states.
+    """
+
+    modes: tuple[Mode, ...]
+    transitions: tuple[Transition, ...]
+    completions: tuple[()]
+    # Static: the scene (callables), names, report lines and the evaluation's tables.
+    scene: Scene = eqx.field(static=True)
+    contact_sets: tuple = eqx.field(static=True)
+    least_norm_modes: tuple = eqx.field(static=True)
+    report: tuple = eqx.field(static=True)
+    achievable: tuple = eqx.field(static=True)
+    form: str = eqx.field(static=True)
+    evaluation: ContactEvaluation | None = eqx.field(static=True)
+
+    def __init__(
+        self, modes, transitions, *, scene, contact_sets, least_norm_modes, report, achievable, form,
+        evaluation=None,
+    ):  # fmt: skip
+        _set_fields(self, modes, transitions, scene=scene, contact_sets=contact_sets,
+                    least_norm_modes=least_norm_modes, report=report, achievable=achievable, form=form,
+                    evaluation=evaluation)  # fmt: skip
+
+    def _force_function(self) -> Callable:
+        """`(t, y, mode, args) -> forces` at one saved state (NaN where `mode` < 0 or t is not finite)."""
+        scene, K = self.scene, len(self.scene.constraints)
+        fns, owners = rows(scene, range(K))
+        table = np.zeros((self.num_modes, K))
+        for m, s in enumerate(self.contact_sets):
+            for name in s or ():
+                table[m, scene.index(name)] = 1.0
+        table = table[:, np.asarray(owners, dtype=int)]
+        least_norm = any(self.least_norm_modes)
+        n = scene.dim
+
+        def one(t, y, mode, args):
+            ok = (mode >= 0) & jnp.isfinite(t)
+            mask = jnp.asarray(table, y.dtype)[jnp.maximum(mode, 0)]
+            y = jnp.where(ok, y, 0.0)
+            t = jnp.where(ok, t, 0.0)
+            _, lam = constrained_acceleration(scene, fns, mask, t, y[:n], y[n : 2 * n], args, least_norm)
+            return jnp.where(ok, lam * mask, jnp.nan)
+
+        return one
 
 
 def _as_set(scene: Scene, contact_set) -> frozenset:
@@ -760,12 +880,13 @@ def contact_system(
     num_starts: int = 8,
     margin: float = 1e-3,
     tol: float = 1e-14,
-    seed: int = 0,
+    key: PRNGKeyArray | None = None,
     redundant: str = "error",
     form: str = "mask",
     max_modes: int = 64,
     relabels: Sequence[Relabel] = (),
-) -> ContactSystem:
+    seed: int | None = None,
+) -> AbstractContactSystem:
     r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
 
     Starting from the `initial` contact sets, each transition out of a built set (an impact of
@@ -784,8 +905,9 @@ def contact_system(
       or samples of its range) to build over: a transition found for any of them is kept, and
       the repr says for which. A batch or a derivative across values that change the modes
       built needs a system built over all of them.
-    - `num_samples`, `num_starts`, `tol`, `seed`: the point search (samples drawn in the
-      scene's `q_range` x `dq_range` x `t_range`; violation accepted as zero).
+    - `num_samples`, `num_starts`, `tol`, `key`: the point search (samples drawn in the
+      scene's `bounds` x `t_bounds`; violation accepted as zero; `key` a `jax.random` key,
+      default `jax.random.key(0)`). Shorthand: `seed=s` for `key=jax.random.key(s)`.
     - `margin`: the least approach speed of an impact and the least pulling force of a
       lift-off that a witness must show, in the scene's units.
     - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
@@ -810,6 +932,7 @@ def contact_system(
         system.contact_forces(sol)
         ```
     """
+    key = point_search_key(key, seed)
     if redundant not in ("error", "least_norm"):
         raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
     if form not in ("branch", "mask"):
@@ -819,7 +942,7 @@ def contact_system(
 
         return friction_system(
             scene, initial, args, args_values=args_values, num_samples=num_samples, num_starts=num_starts,
-            margin=margin, tol=tol, seed=seed, redundant=redundant, max_modes=max_modes, relabels=relabels,
+            margin=margin, tol=tol, key=key, redundant=redundant, max_modes=max_modes, relabels=relabels,
             form=form,
         )  # fmt: skip
     values = list(args_values) if args_values is not None else [args]
@@ -836,11 +959,7 @@ def contact_system(
         jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
     )
 
-    key = jax.random.key(seed)
-    (qlo, qhi), (vlo, vhi) = _range(scene.q_range, n, "q_range"), _range(scene.dq_range, n, "dq_range")
-    lo = jnp.asarray(qlo + vlo + (scene.t_range[0],), dtype)
-    hi = jnp.asarray(qhi + vhi + (scene.t_range[1],), dtype)
-    pts = box_samples(key, lo, hi, num_samples)
+    pts = box_samples(key, *sample_box(scene, dtype), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
     def onehot(idx):

@@ -15,7 +15,7 @@ from diffrax._root_finder import use_stepsize_tol  # private: as diffeqsolve, fi
 from diffrax._saveat import save_y as _save_y  # private: to refuse SaveAt(fn=...) we ignore
 
 from .._core.transforms import adjoint_for, derivative_modes, warn_if_forward_mode_beneath
-from .._definition.system import HybridSystem
+from .._definition.system import AbstractHybridSystem, HybridSystem
 from .._rules.options import EventOptions, SolveOptions
 from .._rules.zeno import DEFAULT_MAX_RATIO, DEFAULT_RATIO_TOL, DEFAULT_WINDOW, zeno_options
 
@@ -76,8 +76,10 @@ def prepare(system, x0_arr, args, solver, controller, options: SolveOptions, adj
     """Check a run's inputs and complete its options (`args` of one execution): the float
     type, the loop kind of `adjoint`, the default controller, the solver prepared as
     `diffrax.diffeqsolve` prepares it, and `options.events.tol` for the dtype where None."""
-    if not isinstance(system, HybridSystem):
-        raise TypeError(f"system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
+    if not isinstance(system, AbstractHybridSystem):
+        raise TypeError(
+            f"system must be a hybridjax.HybridSystem (an AbstractHybridSystem), got {type(system).__name__}."
+        )
     dtype = float_type(x0_arr.dtype)
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"x0 must be real, got dtype {x0_arr.dtype}.")

@@ -12,7 +12,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from .._core.status import Status
 from .._core.transforms import compiled_call_modes, naming_the_forward_mode_fix
-from .._definition.system import HybridSystem
+from .._definition.system import AbstractHybridSystem, HybridSystem
 from .._definition.validation import as_state_array, check_time_span
 from .._engines.batched import BatchedLoop
 from .._engines.lanes import as_status
@@ -177,7 +177,7 @@ def simulate_batch(
     t0 = jnp.broadcast_to(jnp.asarray(t0), (N,))
     t1 = jnp.broadcast_to(jnp.asarray(t1), (N,))
     if isinstance(mode0, (str, int, np.integer)):
-        mode0 = system.mode_index(mode0) if isinstance(system, HybridSystem) else mode0
+        mode0 = system.mode_index(mode0) if isinstance(system, AbstractHybridSystem) else mode0
     run = prepare(system, x0_arr[0], lane_args, solver, stepsize_controller, options, adjoint)
     dtype, kind, options = run.dtype, run.kind, run.options
     args = promote_args(args, dtype)
