@@ -12,6 +12,7 @@ import pytest
 from jax import lax
 
 import hybridjax as hj
+from hybridjax import examples
 
 from helpers import BALL, BALL_ARGS, TIGHT
 
@@ -211,6 +212,25 @@ def test_the_optimisers_and_the_filter_take_the_package_wide_names():
     with pytest.raises(ValueError, match="iterations and steps are the same option"):
         hj.shoot(problem, jnp.asarray(1.0), optax.sgd(0.1), iterations=2, steps=2)
 
+
+
+def test_the_searches_take_iterations_for_their_optimiser_steps():
+    # find_point: the unit circle on the line y = 0, at (+-1, 0), from starts off it;
+    # `max_steps` (optimistix's name) is the same option as `iterations`.
+    circle = lambda t, x, a: jnp.array([x[0] ** 2 + x[1] ** 2 - 1.0, x[1]])  # noqa: E731
+    xs = jnp.array([[2.0, 0.3], [1.5, -0.2], [0.5, 0.1]])
+    found = [hj.find_point(circle, None, jnp.zeros(3), xs, **kw) for kw in (dict(iterations=32),
+                                                                                 dict(max_steps=32))]
+    for w in found:
+        assert bool(w.found)
+        np.testing.assert_allclose(np.abs(np.asarray(w.x)), [1.0, 0.0], atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(found[0].x), np.asarray(found[1].x))
+    with pytest.raises(ValueError, match="iterations and max_steps are the same option"):
+        hj.find_point(circle, None, jnp.zeros(3), xs, iterations=8, max_steps=8)
+    with pytest.raises(ValueError, match="iterations and max_steps are the same option"):
+        hj.check_properties(examples.thermostat(), None, bounds={}, iterations=8, max_steps=8)
+    with pytest.raises(ValueError, match="iterations and max_steps are the same option"):
+        hj.multiple_shooting(None, None, None, iterations=8, max_steps=8)
 
 _FLOOR = hj.Constraint("floor", lambda t, q, a: q[0], restitution=lambda a: a["e"])
 

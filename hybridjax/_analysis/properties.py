@@ -312,7 +312,7 @@ def _frame(kern: Kernels, mode, t, y, args):
 
 
 @eqx.filter_jit
-def _search_batch(system, queries, ts, xs, args, margin, t_bounds, tol, num_starts, max_steps):
+def _search_batch(system, queries, ts, xs, args, margin, t_bounds, tol, num_starts, iterations):
     """Every query's `find_point`, vmapped; `ts` (M, N), `xs` (M, N, max_dim) per mode."""
     kern = Kernels(system, args)
     has_reset = system.num_transitions > 0
@@ -341,7 +341,7 @@ def _search_batch(system, queries, ts, xs, args, margin, t_bounds, tol, num_star
             t_bounds=t_bounds,
             tol=tol,
             num_starts=num_starts,
-            max_steps=max_steps,
+            iterations=iterations,
         )
 
     return jax.vmap(one)(queries)
@@ -501,9 +501,10 @@ def check_properties(
     atol: float = 1e-8,
     tol: float = 1e-14,
     num_starts: int = 8,
-    max_steps: int = 64,
+    iterations: int | None = None,
     max_chain: int = 16,
     t_window: tuple[float, float] | None = None,
+    max_steps: int | None = None,
 ) -> PropertyReport:
     r"""Check a hybrid system's properties (A. M. Johnson, "Hybrid Dynamical Systems", section 3)
     by sampling each mode's states and searching locally for counterexamples.
@@ -549,7 +550,8 @@ def check_properties(
       $g \ge$ `margin`; a flow "leaving" has $\dot a \le -$`margin`).
     - `rtol`, `atol`: the tolerances of the simulation, which set the band within which the
       simulator's start rule treats a guard as touched (as in `simulate`).
-    - `tol`, `num_starts`, `max_steps`: passed to `find_point` for each search. The defaults of
+    - `tol`, `num_starts`, `iterations` (default 64; shorthand: `max_steps`): passed to
+      `find_point` for each search. The defaults of
       `tol` and `margin` assume float64 (`jax_enable_x64`).
     - `max_chain`: chains longer than this are reported as cycles.
 
@@ -565,6 +567,7 @@ def check_properties(
         report  # a table: each transition achievable at its threshold
         ```
     """
+    iterations = one_of("check_properties", iterations=iterations, max_steps=max_steps, default=64)
     dtype = jnp.result_type(float)
     key = jax.random.key(0) if key is None else key
     # Python floats in `args` become arrays, so that new values reuse the compiled searches.
@@ -586,7 +589,8 @@ def check_properties(
     names = system.mode_names
     if Q.rows:
         w = _search_batch(
-            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, tol, num_starts, max_steps
+            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, tol, num_starts,
+            iterations,
         )
         found, wt, wx = np.asarray(w.found), np.asarray(w.t), np.asarray(w.x)
     else:

@@ -24,6 +24,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._core import small_linalg as small_linalg
+from .._core.names import one_of
 
 
 class Witness(eqx.Module):
@@ -151,14 +152,15 @@ def find_point(
     t_bounds: tuple[Any, Any] | None = None,
     tol: float = 1e-10,
     num_starts: int = 8,
-    max_steps: int = 64,
+    iterations: int | None = None,
+    max_steps: int | None = None,
 ) -> Witness:
     """A point (t, x) with `equalities == 0` and `inequalities >= 0`, searched from samples.
 
     Every sample (ts[i], xs[i]) is scored by its violation
     $v(t, x) = \\sum_i e_i(t, x)^2 + \\sum_j \\min(c_j(t, x), 0)^2$; the `num_starts` best are
     refined by a dogleg trust-region solve of the residual vector $(e, \\min(c, 0))$ (optimistix,
-    at most `max_steps` steps each); the point of least violation among the starts and
+    at most `iterations` steps each, default 64); the point of least violation among the starts and
     their refinements is returned, `found` when $v \\le$ `tol`.
 
     **Arguments:**
@@ -172,6 +174,8 @@ def find_point(
       [lo, hi] (the samples' `ts` should lie in it).
     - `tol`: the violation accepted as zero.
     - `num_starts`: how many of the best samples are refined.
+    - `iterations`: the most steps of each refinement (`max_steps`, optimistix's name, is a
+      shorthand).
 
     Jittable and vmappable (e.g. over many pairs of sets at once, with the constraint
     functions selecting the pair from `args`).
@@ -191,6 +195,7 @@ def find_point(
     """
     if equalities is None and inequalities is None:
         raise ValueError("find_point needs `equalities` or `inequalities` (both are None).")
+    iterations = one_of("find_point", iterations=iterations, max_steps=max_steps, default=64)
     return search(
         _joint(equalities, inequalities),
         ts,
@@ -199,7 +204,7 @@ def find_point(
         t_bounds=t_bounds,
         tol=tol,
         num_starts=num_starts,
-        max_steps=max_steps,
+        iterations=iterations,
     )
 
 
@@ -212,7 +217,7 @@ def search(
     t_bounds: tuple[Any, Any] | None = None,
     tol: float = 1e-10,
     num_starts: int = 8,
-    max_steps: int = 64,
+    iterations: int = 64,
 ) -> Witness:
     """`find_point` with the constraints given by one function, `constraints(t, x, args) ->
     (equalities, inequalities)` (two 1-D arrays), for constraints that share their work."""
@@ -241,11 +246,11 @@ def search(
         # One flat vector of unknowns: `_DampedLeastSquares` solves with the Jacobian's matrix.
         if t_bounds is None:
             fn = lambda y, _: _finite(_residuals(constraints, None, t, y, args))
-            sol = optx.least_squares(fn, solver, x, max_steps=max_steps, throw=False)
+            sol = optx.least_squares(fn, solver, x, max_steps=iterations, throw=False)
             return t, sol.value
         fn = lambda y, _: _finite(_residuals(constraints, None, _time_of(y[0], *t_bounds), y[1:], args))
         y0 = jnp.concatenate([_angle_of(t, *t_bounds)[None].astype(dtype), x])
-        sol = optx.least_squares(fn, solver, y0, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(fn, solver, y0, max_steps=iterations, throw=False)
         return _time_of(sol.value[0], *t_bounds).astype(dtype), sol.value[1:]
 
     t1, x1 = jax.vmap(refine)(t0, x0)

@@ -35,6 +35,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
+from .._core.names import one_of
 from .._definition.system import HybridSystem
 from .._solution.solution import Solution
 from .._solve.simulate import simulate
@@ -253,9 +254,10 @@ def multiple_shooting(
     guess: EpochGuess,
     *,
     solver: optx.AbstractLeastSquaresSolver | None = None,
-    max_steps: int = 256,
+    iterations: int | None = None,
     check: MultipleShootingCheck | None = None,
     restarts: int = 3,
+    max_steps: int | None = None,
 ) -> MultipleShootingResult:
     r"""Solve `problem` from `params0` and the epoch `guess` by nonlinear least squares:
     minimise $\tfrac12 \|r\|^2$ over $(\theta, z, u)$, $r$ the deflated guard, continuity and
@@ -275,9 +277,11 @@ def multiple_shooting(
     earlier than the epochs) is restarted from it: its epochs (`EpochGuess.from_solution`) and
     the round's parameters, up to `restarts` times (`result.restarts` counts them).
 
-    `solver` defaults to `optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)`, with `max_steps`
-    steps a round. A problem whose targets fix every unknown has residual 0 at its solution.
+    `solver` defaults to `optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)`, with `iterations`
+    steps a round (default 256; `max_steps`, optimistix's name, is a shorthand). A problem
+    whose targets fix every unknown has residual 0 at its solution.
     """
+    iterations = one_of("multiple_shooting", iterations=iterations, max_steps=max_steps, default=256)
     solver = solver or optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
     check = MultipleShootingCheck() if check is None else check
     if not isinstance(check, MultipleShootingCheck):
@@ -290,7 +294,7 @@ def multiple_shooting(
     params = jax.tree_util.tree_map(lambda p: jnp.asarray(p, jnp.result_type(p, float)), params0)
     steps = 0
     for restart in range(restarts + 1):
-        result = _solve(problem, params, guess, solver, max_steps, zero, check)
+        result = _solve(problem, params, guess, solver, iterations, zero, check)
         steps = steps + result.steps
         ex = result.execution
         if bool(result.success) or restart == restarts or int(ex.num_events) < k or not np.array_equal(
@@ -327,7 +331,7 @@ def _flowing(zero):
 
 
 @eqx.filter_jit
-def _solve(problem, params0, guess, solver, max_steps, zero, check):
+def _solve(problem, params0, guess, solver, iterations, zero, check):
     tau = jnp.where(jnp.asarray(zero), 1.0, guess.durations)
     flowing = _flowing(zero)
 
@@ -343,7 +347,7 @@ def _solve(problem, params0, guess, solver, max_steps, zero, check):
         return jnp.concatenate([guards * (1 + (tau[flowing] / T[flowing]) ** 2), cont, targets])
 
     y0 = (params0, guess.states, jnp.zeros_like(guess.durations))
-    sol = optx.least_squares(deflated, solver, y0, max_steps=max_steps, throw=False)
+    sol = optx.least_squares(deflated, solver, y0, max_steps=iterations, throw=False)
     params, states, u = sol.value
     epochs = EpochGuess(states, _durations(u, tau, zero))
     times, befores, guards, cont, targets = parts(params, states, epochs.durations)
