@@ -6,8 +6,8 @@ or a kernel name whose last `_` stands for the instruction name's `.`), and the 
 the control-flow path of its `op_name` (`while/body/cond/branch_1_fun/...`): the event phase, the
 root and minimum searches and the hot step are separate regions of that path. Only leaf kernels
 are summed (a `while` or `conditional` instruction's own event spans its body). On a GPU the
-run's time beyond the kernels' sum is launch latency and host synchronisation (a conditional's
-predicate and a while loop's condition are read on the host). On a CPU the thunks of nested
+run's time beyond the kernels' sum is spent outside them: kernel launches, and the host's reads of
+each conditional's predicate and each while loop's condition. On a CPU the thunks of nested
 computations overlap in the trace, and the regions' sums can exceed the run: read them as shares.
 
     python benchmarks/gpu_profile.py                  # N = 1e6; results/gpu_profile.json
