@@ -78,6 +78,7 @@ from ._solve.engines import FastEngine as FastEngine
 from ._solve.engines import VmapEngine as VmapEngine
 from ._solve.simulate import simulate as simulate
 from ._solve.simulate_batch import simulate_batch as simulate_batch
+from ._solve.simulator import Simulator as Simulator
 
 __version__ = "0.1.0"
 from ._rules.zeno import ZenoOptions as ZenoOptions

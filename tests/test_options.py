@@ -271,3 +271,27 @@ def test_the_scene_takes_the_package_wide_names():
     assert by_seed.report == by_key.report != other.report
     with pytest.raises(ValueError, match="key and seed are the same option"):
         hj.contact_system(scene, ["free"], args, key=jax.random.key(3), seed=3)
+
+
+# ---------------------------------------------------------------------------- Simulator
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(solver="tsit5"), "Simulator: solver must be"),
+    (dict(stepsize_controller=1e-8), "Simulator: stepsize_controller must be"),
+    (dict(adjoint="reverse"), "Simulator: adjoint must be"),
+    (dict(engine="fastest"), "engine must be"),
+    (dict(max_epoch=8), "unexpected keyword argument 'max_epoch'"),
+    (dict(options=hj.SolveOptions(), max_epochs=8), "pass max_epochs there"),
+])
+def test_simulator_names_the_field_at_fault(kwargs, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        hj.Simulator(**kwargs)
+
+
+def test_a_simulator_runs_simulate_and_simulate_batch_with_its_settings():
+    sim = hj.Simulator(solver=diffrax.Tsit5(), engine="fast", stepsize_controller=TIGHT, max_epochs=8)
+    assert sim.options == hj.SolveOptions(max_epochs=8)
+    _assert_impacts(sim(BALL, X0, "flight", 0.0, 3.0, BALL_ARGS).event_times, 3.0)
+    batch = hj.Simulator(stepsize_controller=TIGHT, engine=hj.BatchedEngine(lanes=2, block=1), max_epochs=6)
+    sols = batch.batch(BALL, jnp.stack([X0] * 3), "flight", 0.0, 3.0, BALL_ARGS)
+    for i in range(3):
+        _assert_impacts(sols.event_times[i], 3.0)

@@ -47,6 +47,7 @@ from .._core.transforms import (
     naming_the_forward_mode_fix,
 )
 from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
+from .prepare import SHORTHANDS, solve_options
 
 # The errors of code that needs a concrete value where the compiled call gives it a tracer.
 _NEEDS_CONCRETE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
@@ -93,6 +94,18 @@ def _hashable_leaves(tree) -> bool:
     return True
 
 
+def _options_as_object(bound: inspect.BoundArguments, where: str) -> None:
+    """`options` and its keyword shorthands replaced by the one `SolveOptions` they build, so that
+    `max_epochs=8` and `options=hj.SolveOptions(max_epochs=8)` (or an `hj.Simulator` holding it)
+    are one cache entry. Both given is left to the call, whose error names them."""
+    given = bound.arguments.get("shorthands", {})
+    mine = {name: value for name, value in given.items() if name in SHORTHANDS}
+    if bound.arguments.get("options") is not None and mine:
+        return
+    bound.arguments["options"] = solve_options(bound.arguments.get("options"), mine, where)
+    bound.arguments["shorthands"] = {name: value for name, value in given.items() if name not in mine}
+
+
 def compiled_when_eager(check_time_span: Callable) -> Callable:
     """Decorator: `fn` called outside `jax.jit` (also under `jax.grad`, `jax.vmap`, ...) runs as
     `eqx.filter_jit(fn)`.
@@ -123,6 +136,8 @@ def compiled_when_eager(check_time_span: Callable) -> Callable:
             if not eager_at_top():
                 return fn(*args, **kwargs)
             bound = signature.bind(*args, **kwargs)
+            # Defaults written out: a keyword passed at its default is the same cache entry.
+            bound.apply_defaults()
             # The state is an array whatever the caller wrote (a list of floats would otherwise
             # be part of the key, and compile again for every initial state).
             if isinstance(bound.arguments["x0"], (list, tuple)):
@@ -133,6 +148,7 @@ def compiled_when_eager(check_time_span: Callable) -> Callable:
             adjoint = bound.arguments.get("adjoint", signature.parameters["adjoint"].default)
             if adjoint_for(adjoint, modes) is not adjoint:
                 bound.arguments["adjoint"] = adjoint_for(adjoint, modes)
+            _options_as_object(bound, fn.__name__)
             call_args, call_kwargs = _wrap_scalars((bound.args, bound.kwargs))
             if not _hashable_leaves((call_args, call_kwargs)):
                 return fn(*bound.args, **bound.kwargs)
