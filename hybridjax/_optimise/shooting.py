@@ -11,7 +11,7 @@ sequence (exactly k bounces, say) is enforced by backtracking: a step whose exec
 transitions is halved until it does not.
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import diffrax
@@ -22,10 +22,11 @@ import numpy as np
 import optax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int, PyTree
 
-from .._core.names import one_of
+from .._core.checks import check_int
+from .._core.names import bounds_of, one_of
 from .._definition.system import AbstractHybridSystem, HybridSystem, Mode, Transition
 from .._solution.solution import Solution
-from .._solve.simulate import simulate
+from .._solve.simulator import Simulator, simulator_of
 
 
 def _value(spec, params):
@@ -53,10 +54,18 @@ class Shooting(eqx.Module):
       in order: an execution is admissible when it takes exactly these transitions. A step to
       an inadmissible execution is halved, up to `max_backtracks` times, and refused if it
       stays inadmissible.
-    - `lower`, `upper`: optional bounds, pytrees of the parameters' structure (or scalars);
-      each iterate is projected onto the box.
-    - `solver`, `stepsize_controller`, `saveat`, `max_epochs`, `max_steps`: passed to
-      `simulate`.
+    - `bounds`: optional `(lower, upper)`, each a pytree of the parameters' structure, a
+      scalar, or None for no bound on that side; each iterate is projected onto the box.
+    - `simulator`: an `hj.Simulator`, how each execution is computed (solver, step-size
+      controller, save times, `max_epochs`, `max_steps`, ...). Default: `hj.Simulator(max_epochs=16)`.
+    - `max_backtracks`: the most halvings of a step whose execution is inadmissible.
+
+    **Keyword shorthands** (pass a name or its shorthands, not both: a `ValueError` names both;
+    an unknown keyword is a `TypeError` naming it):
+
+    - `lower`, `upper`: `bounds=(lower, upper)`.
+    - `solver`, `stepsize_controller`, `saveat`, `max_epochs` (16), `max_steps` (4096) and
+      `simulate`'s other keywords: `simulator=hj.Simulator(...)` with these settings.
 
     !!! Example
 
@@ -66,7 +75,7 @@ class Shooting(eqx.Module):
             ball, x0=lambda v: jnp.stack([0.0 * v, v]), mode0="flight", t1=10.0,
             args={"g": 9.8, "e": 0.5},
             cost=lambda v, sol: (sol.event_times[1] - 2.0) ** 2,   # second impact at t = 2
-            max_epochs=2)
+            bounds=(0.0, 20.0), simulator=hj.Simulator(max_epochs=2))
         result = hj.shoot(problem, jnp.asarray(6.0), optax.adam(0.1), iterations=200)
         ```
     """
@@ -75,28 +84,39 @@ class Shooting(eqx.Module):
     cost: Callable
     x0: Any
     mode0: str | int = eqx.field(static=True)
-    t0: Any = 0.0
-    t1: Any = 1.0
-    args: Any = None
-    transitions: tuple[int, ...] | None = eqx.field(static=True, default=None)
-    lower: Any = None
-    upper: Any = None
-    solver: diffrax.AbstractSolver = diffrax.Tsit5()
-    stepsize_controller: diffrax.AbstractStepSizeController | None = None
-    saveat: Any = None
-    max_epochs: int = eqx.field(static=True, default=16)
-    max_steps: int = eqx.field(static=True, default=4096)
-    max_backtracks: int = eqx.field(static=True, default=8)
+    t0: Any
+    t1: Any
+    args: Any
+    transitions: tuple[int, ...] | None = eqx.field(static=True)
+    bounds: tuple[Any, Any]
+    simulator: Simulator
+    max_backtracks: int = eqx.field(static=True)  # static: the backtracking loop's bound
 
-    def __init__(self, system, cost, x0, mode0, *, t0=0.0, t1=1.0, args=None, transitions=None,
-                 lower=None, upper=None, solver=diffrax.Tsit5(), stepsize_controller=None,
-                 saveat=None, max_epochs=16, max_steps=4096, max_backtracks=8):
+    def __init__(
+        self,
+        system: HybridSystem,
+        cost: Callable,
+        x0: Any,
+        mode0: str | int,
+        *,
+        t0: Any = 0.0,
+        t1: Any = 1.0,
+        args: Any = None,
+        transitions: Sequence[int | Transition] | None = None,
+        bounds: tuple[Any, Any] | None = None,
+        simulator: Simulator | None = None,
+        max_backtracks: int = 8,
+        **shorthands,
+    ):
         if not isinstance(system, AbstractHybridSystem):
             raise TypeError(
                 f"Shooting: system must be a hybridjax.HybridSystem, got {type(system).__name__}.")
         if not callable(cost):
             raise TypeError("Shooting: `cost` must be a function cost(params, sol) -> scalar.")
         system.mode_index(mode0)  # raises, naming the mode, when it is unknown
+        bounds = bounds_of("Shooting", bounds, shorthands)
+        simulator = simulator_of("Shooting", simulator, shorthands, defaults={"max_epochs": 16})
+        max_epochs = simulator.options.max_epochs
         if transitions is not None:
             transitions = tuple(system.transition_index(tr) for tr in transitions)
             if len(transitions) > max_epochs:
@@ -104,22 +124,44 @@ class Shooting(eqx.Module):
                     f"Shooting: the required sequence has {len(transitions)} transitions but "
                     f"max_epochs={max_epochs} records fewer; raise max_epochs."
                 )
-        if max_backtracks < 0:
-            raise ValueError(f"Shooting: max_backtracks must be >= 0, got {max_backtracks}.")
+        check_int("Shooting", "max_backtracks", max_backtracks, 0)
         self.system, self.cost, self.x0, self.mode0 = system, cost, x0, mode0
         self.t0, self.t1, self.args, self.transitions = t0, t1, args, transitions
-        self.lower, self.upper = lower, upper
-        self.solver, self.stepsize_controller, self.saveat = solver, stepsize_controller, saveat
-        self.max_epochs, self.max_steps, self.max_backtracks = max_epochs, max_steps, max_backtracks
+        self.bounds, self.simulator, self.max_backtracks = bounds, simulator, max_backtracks
+
+    # The box's sides and the simulator's settings, readable under their shorthands' names.
+    @property
+    def lower(self) -> Any:
+        return self.bounds[0]
+
+    @property
+    def upper(self) -> Any:
+        return self.bounds[1]
+
+    @property
+    def solver(self) -> diffrax.AbstractSolver:
+        return self.simulator.solver
+
+    @property
+    def stepsize_controller(self) -> diffrax.AbstractStepSizeController | None:
+        return self.simulator.stepsize_controller
+
+    @property
+    def saveat(self) -> Any:
+        return self.simulator.saveat
+
+    @property
+    def max_epochs(self) -> int:
+        return self.simulator.options.max_epochs
+
+    @property
+    def max_steps(self) -> int:
+        return self.simulator.options.max_steps
 
     def execution(self, params: PyTree) -> Solution:
-        """The execution for these parameters (one `simulate`)."""
-        return simulate(
-            self.system, _value(self.x0, params), self.mode0, _value(self.t0, params),
-            _value(self.t1, params), _value(self.args, params), solver=self.solver,
-            stepsize_controller=self.stepsize_controller, saveat=self.saveat,
-            max_epochs=self.max_epochs, max_steps=self.max_steps,
-        )
+        """The execution for these parameters (one `simulate`, with `simulator`'s settings)."""
+        return self.simulator(self.system, _value(self.x0, params), self.mode0, _value(self.t0, params),
+                              _value(self.t1, params), _value(self.args, params))
 
     def loss(self, params: PyTree) -> tuple[Float[Array, ""], Solution]:
         """The cost and the execution it was computed on."""
@@ -127,7 +169,7 @@ class Shooting(eqx.Module):
         return jnp.asarray(self.cost(params, sol)), sol
 
     def project(self, params: PyTree) -> PyTree:
-        """`params` projected onto the box [lower, upper] (unchanged without bounds)."""
+        """`params` projected onto the box `bounds` = [lower, upper] (unchanged without bounds)."""
         if self.lower is None and self.upper is None:
             return params
         return optax.projections.projection_box(
