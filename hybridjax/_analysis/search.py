@@ -21,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, PRNGKeyArray
+from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._core import small_linalg as small_linalg
-from .._core.names import one_of
+from .._core.names import bounds_of, one_of
 
 
 class Witness(eqx.Module):
@@ -188,7 +188,7 @@ def find_point(
         ```python
         circle = lambda t, x, args: jnp.array([x[0] ** 2 + x[1] ** 2 - 1.0])
         half_plane = lambda t, x, args: jnp.array([x[0] - 0.5])
-        xs = hj.box_samples(jax.random.key(0), -2.0 * jnp.ones(2), 2.0 * jnp.ones(2), 64)
+        xs = hj.box_samples(jax.random.key(0), (-2.0 * jnp.ones(2), 2.0 * jnp.ones(2)), 64)
         w = hj.find_point(circle, half_plane, jnp.zeros(64), xs)
         w.found, w.x  # True, a point of the unit circle with x[0] >= 0.5
         ```
@@ -262,9 +262,37 @@ def search(
 
 
 def box_samples(
-    key: PRNGKeyArray, lower: Float[Array, " n"], upper: Float[Array, " n"], num: int
+    key: PRNGKeyArray,
+    bounds: tuple[Float[ArrayLike, " n"], Float[ArrayLike, " n"]] | None = None,
+    num: int | None = None,
+    *positional: Any,
+    **shorthands: Any,
 ) -> Float[Array, "num n"]:
-    """`num` points drawn uniformly in the box [lower, upper] (componentwise)."""
+    r"""`num` points drawn uniformly in the box `bounds = (lower, upper)` (componentwise):
+    $x = \text{lower} + u\,(\text{upper} - \text{lower})$ with $u \sim U[0, 1)^n$.
+
+    **Keyword shorthands:** `lower=`, `upper=` build `bounds` (passing `bounds` too is a
+    `ValueError` naming both); the positional form `box_samples(key, lower, upper, num)` is the
+    same call.
+
+    !!! Example
+
+        ```python
+        xs = hj.box_samples(jax.random.key(0), (-2.0 * jnp.ones(2), 2.0 * jnp.ones(2)), 64)
+        ```
+    """
+    if len(positional) == 1:  # box_samples(key, lower, upper, num)
+        if bounds is None or num is None or {"lower", "upper"} & set(shorthands):
+            raise TypeError("box_samples: pass box_samples(key, bounds, num) or "
+                            "box_samples(key, lower, upper, num).")
+        bounds, num = (bounds, num), positional[0]
+    elif positional:
+        raise TypeError(f"box_samples() takes at most 4 positional arguments, got {3 + len(positional)}.")
+    lower, upper = bounds_of("box_samples", bounds, shorthands)
+    if shorthands:
+        raise TypeError(f"box_samples() got an unexpected keyword argument {sorted(shorthands)[0]!r}.")
+    if lower is None or upper is None or num is None:
+        raise TypeError("box_samples: needs bounds=(lower, upper) and num.")
     lower, upper = jnp.asarray(lower), jnp.asarray(upper)
     dtype = jnp.result_type(lower.dtype, upper.dtype, float)
     u = jax.random.uniform(key, (num,) + lower.shape, dtype)

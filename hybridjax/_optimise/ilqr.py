@@ -29,10 +29,11 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._analysis.saltation import saltation_matrix
-from .._core.names import one_of
+from .._core.checks import check_int
+from .._core.names import bounds_of, one_of
 from .._definition.system import HybridSystem
 from .._optimise.multiple_shooting import rk4_flow
-from .._solve.simulate import simulate
+from .._solve.simulator import Simulator, simulator_of
 
 
 class HybridLQRProblem(eqx.Module):
@@ -53,16 +54,29 @@ class HybridLQRProblem(eqx.Module):
     - `x0`, `mode0`: the initial state and mode.
     - `ts` (N + 1,): the time grid.
     - `reference` (N + 1, n): the states r_k to track; `Q`, `R`, `Qf`: the weights.
-    - `lower`, `upper`: optional control bounds (the rollout clips to them).
-    - `max_epochs`: the most events one interval may hold (`simulate`'s `max_epochs`;
-      `max_events` is the same keyword under another name).
-    - `substeps`: RK4 steps per flow segment for the linearisations and extensions.
+    - `bounds`: optional `(lower, upper)` control bounds (scalars or (m,) arrays, None for no
+      bound on that side); the rollout clips the controls to them.
+    - `simulator`: an `hj.Simulator`, how each interval's execution is computed. Its
+      `max_epochs` is the most events one interval may hold (it also sizes the linearisation's
+      chain of flow segments). Default: `hj.Simulator(stepsize_controller=diffrax.PIDController(
+      rtol=1e-10, atol=1e-10), max_epochs=2)`.
+    - `substeps`: RK4 steps per flow segment for the linearisations and the reference
+      extensions. These segments are iLQR's own fixed-step discretisation, differentiated by
+      AD, not executions: the simulator does not compute them.
+
+    **Keyword shorthands** (pass a name or its shorthands, not both: a `ValueError` names both;
+    an unknown keyword is a `TypeError` naming it):
+
+    - `lower`, `upper`: `bounds=(lower, upper)`.
+    - `max_epochs` (2; `max_events` is the same option), `stepsize_controller` (the
+      PIDController above) and `simulate`'s other keywords: `simulator=hj.Simulator(...)` with
+      these settings.
 
     !!! Example
 
         ```python
         problem = hj.HybridLQRProblem(ball, lambda u: {"g": 9.8, "e": 0.8, "u": u[0]},
-                                      x0, "flight", ts, reference, Q, R, Qf)
+                                      x0, "flight", ts, reference, Q, R, Qf, bounds=(-5.0, 5.0))
         result = hj.hybrid_ilqr(problem, jnp.zeros((len(ts) - 1, 1)), iterations=20)
         ```
     """
@@ -76,14 +90,27 @@ class HybridLQRProblem(eqx.Module):
     Q: Float[Array, "n n"]
     R: Float[Array, "m m"]
     Qf: Float[Array, "n n"]
-    lower: Any = None
-    upper: Any = None
-    max_epochs: int = eqx.field(static=True, default=2)  # static: a shape and a Python loop bound
-    substeps: int = eqx.field(static=True, default=8)
-    stepsize_controller: Any = None
+    bounds: tuple[Any, Any]
+    simulator: Simulator
+    substeps: int = eqx.field(static=True)  # static: the RK4 scan's length
 
-    def __init__(self, system, control_args, x0, mode0, ts, reference, Q, R, Qf, *, lower=None,
-                 upper=None, max_epochs=None, substeps=8, stepsize_controller=None, max_events=None):
+    def __init__(
+        self,
+        system: HybridSystem,
+        control_args: Callable,
+        x0: Float[ArrayLike, " n"],
+        mode0: str | int,
+        ts: Float[ArrayLike, " N+1"],
+        reference: Float[ArrayLike, "N+1 n"],
+        Q: Float[ArrayLike, "n n"],
+        R: Float[ArrayLike, "m m"],
+        Qf: Float[ArrayLike, "n n"],
+        *,
+        bounds: tuple[Any, Any] | None = None,
+        simulator: Simulator | None = None,
+        substeps: int = 8,
+        **shorthands,
+    ):
         dims = {m.dim for m in system.modes}
         if len(dims) != 1:
             raise ValueError("HybridLQRProblem: every mode needs the same state dimension, got "
@@ -96,28 +123,54 @@ class HybridLQRProblem(eqx.Module):
         if reference.shape != (ts.shape[0], n):
             raise ValueError(f"HybridLQRProblem: reference has shape {reference.shape}, expected "
                              f"{(ts.shape[0], n)} (one state per grid time).")
+        check_int("HybridLQRProblem", "substeps", substeps, 1)
+        bounds = bounds_of("HybridLQRProblem", bounds, shorthands)
+        max_events = shorthands.pop("max_events", None)  # max_epochs under its other name
+        if max_events is not None:
+            if simulator is not None:
+                raise ValueError("HybridLQRProblem: simulator=hj.Simulator(...) holds the run's settings: "
+                                 "pass max_events there (as max_epochs), not beside it.")
+            shorthands["max_epochs"] = one_of("HybridLQRProblem", max_epochs=shorthands.get("max_epochs"),
+                                              max_events=max_events, default=None)
+        simulator = simulator_of("HybridLQRProblem", simulator, shorthands, defaults={
+            "stepsize_controller": diffrax.PIDController(rtol=1e-10, atol=1e-10), "max_epochs": 2})
         self.system, self.control_args = system, control_args
         self.x0, self.mode0 = jnp.asarray(x0, float), system.mode_index(mode0)
         self.ts, self.reference = ts, reference
         self.Q, self.R, self.Qf = (jnp.atleast_2d(jnp.asarray(w, float)) for w in (Q, R, Qf))
-        self.lower, self.upper = lower, upper
-        self.max_epochs = one_of("HybridLQRProblem", max_epochs=max_epochs, max_events=max_events, default=2)
-        self.substeps = substeps
-        self.stepsize_controller = stepsize_controller or diffrax.PIDController(rtol=1e-10, atol=1e-10)
+        self.bounds, self.simulator, self.substeps = bounds, simulator, substeps
+
+    # The bounds' sides and the simulator's settings, readable under their shorthands' names.
+    @property
+    def lower(self) -> Any:
+        return self.bounds[0]
+
+    @property
+    def upper(self) -> Any:
+        return self.bounds[1]
+
+    @property
+    def max_epochs(self) -> int:
+        """The most events one interval may hold (the simulator's `max_epochs`)."""
+        return self.simulator.options.max_epochs
 
     @property
     def max_events(self) -> int:
         """`max_epochs` under its other name."""
         return self.max_epochs
 
+    @property
+    def stepsize_controller(self) -> diffrax.AbstractStepSizeController | None:
+        return self.simulator.stepsize_controller
+
     # ------------------------------------------------------------------ pieces
 
     def interval(self, x, mode, u, t_a, t_b):
         """One interval of the discrete dynamics: the hybrid execution over [t_a, t_b]."""
-        return simulate(self.system, x, mode, t_a, t_b, self.control_args(u), max_epochs=self.max_epochs,
-                        stepsize_controller=self.stepsize_controller)
+        return self.simulator(self.system, x, mode, t_a, t_b, self.control_args(u))
 
     def clip(self, u):
+        """`u` clipped to `bounds` (unchanged without bounds)."""
         if self.lower is None and self.upper is None:
             return u
         return jnp.clip(u, self.lower, self.upper)
