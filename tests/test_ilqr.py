@@ -4,9 +4,11 @@ move the impact into another interval (the optimum, u = 0, reproduces the refere
 hopper reaching a target apex, checked with the ballistic flight's closed form."""
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 from hybridjax._optimise.ilqr import _initial, linearise
@@ -93,3 +95,35 @@ def test_hopper_reaches_a_target_apex():
     modes, events = np.asarray(result.modes), np.asarray(result.event_times[-1][:, 0])
     flight_only = (modes[:-1] == 0) & (modes[1:] == 0) & ~np.isfinite(events)
     assert flight_only.sum() >= 6 and np.all(u[flight_only] < 1e-6)
+
+
+# ----------------------------------------------------------------------------- names and shorthands
+
+TRACK_SIM = hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10), max_epochs=2)
+
+
+def test_lqr_problem_takes_simulator_and_bounds_and_their_shorthands():
+    track = (BALL, ball_args, X0, "flight", TS, REFERENCE.xs, Q, 1e-3, 10 * Q)
+    problem = hj.HybridLQRProblem(*track, simulator=TRACK_SIM)
+    assert eqx.tree_equal(problem, TRACK)
+    for kw in (dict(max_events=2), dict(max_epochs=2, stepsize_controller=TRACK_SIM.stepsize_controller)):
+        assert eqx.tree_equal(hj.HybridLQRProblem(*track, **kw), problem)
+    assert problem.max_epochs == problem.max_events == 2 and problem.stepsize_controller.rtol == 1e-10
+    # the rollout runs the simulator's executions (the compiled rollout of the linearisation test):
+    # thrust 2.5 from rest at h = 1 lands at sqrt(2 / (g - 2.5)) (closed form), in interval 10
+    nominal = _initial(problem, U0)
+    np.testing.assert_allclose(nominal.event_times[10, 0], np.sqrt(2 / (G - 2.5)), rtol=0, atol=1e-9)
+    # bounds=(lower, upper) clip the controls as numpy's clip does
+    boxed = hj.HybridLQRProblem(*track, bounds=(0.0, 1.5))
+    assert eqx.tree_equal(boxed, hj.HybridLQRProblem(*track, lower=0.0, upper=1.5))
+    assert (boxed.lower, boxed.upper) == (0.0, 1.5)
+    u = jnp.array([-1.0, 0.5, 2.0])
+    np.testing.assert_array_equal(boxed.clip(u), np.clip(np.asarray(u), 0.0, 1.5))
+    for both, names in ((dict(bounds=(0.0, 1.0), upper=1.0), "bounds and upper"),
+                        (dict(simulator=TRACK_SIM, stepsize_controller=TRACK_SIM.stepsize_controller),
+                         "pass stepsize_controller there"),
+                        (dict(simulator=TRACK_SIM, max_events=2), "pass max_events there")):
+        with pytest.raises(ValueError, match=names):
+            hj.HybridLQRProblem(*track, **both)
+    with pytest.raises(TypeError, match="'max_event'"):
+        hj.HybridLQRProblem(*track, max_event=2)

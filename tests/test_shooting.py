@@ -294,6 +294,29 @@ def test_thermostat_bound_is_active_when_the_optimum_lies_outside():
     assert np.all(np.asarray(result.params_history) <= 21.5)
 
 
+def test_shooting_takes_simulator_and_bounds_and_their_shorthands():
+    # DUTY written with the package-wide names is the same problem (and the same compiled program)
+    problem = hj.Shooting(DUTY.system, DUTY.cost, x0=DUTY.x0, mode0="heat", t1=50.0, args=DUTY.args,
+                          bounds=(jnp.asarray(T_LO + 0.5), jnp.asarray(29.0)),
+                          simulator=hj.Simulator(stepsize_controller=TIGHT, max_epochs=2))
+    assert eqx.tree_equal(problem, DUTY)
+    assert (problem.max_epochs, problem.max_steps, problem.stepsize_controller) == (2, 4096, TIGHT)
+    assert float(problem.lower) == T_LO + 0.5 and float(problem.upper) == 29.0
+    result = hj.shoot(problem, jnp.asarray(21.0), SGD_DUTY, iterations=25)
+    np.testing.assert_allclose(result.params, _duty_half_threshold(), rtol=1e-7)
+    # the defaults: no bounds, simulate's settings with 16 events recorded
+    bare = hj.Shooting(DUTY.system, DUTY.cost, x0=DUTY.x0, mode0="heat")
+    assert bare.bounds == (None, None) and eqx.tree_equal(bare.simulator, hj.Simulator(max_epochs=16))
+    sim = hj.Simulator(max_epochs=2)
+    for both, names in ((dict(bounds=(0.0, 1.0), lower=0.0), "bounds and lower"),
+                        (dict(simulator=sim, max_epochs=2), "pass max_epochs there"),
+                        (dict(simulator=sim, solver=diffrax.Tsit5()), "pass solver there")):
+        with pytest.raises(ValueError, match=names):
+            hj.Shooting(DUTY.system, DUTY.cost, x0=DUTY.x0, mode0="heat", **both)
+    with pytest.raises(TypeError, match="'max_epoch'"):
+        hj.Shooting(DUTY.system, DUTY.cost, x0=DUTY.x0, mode0="heat", max_epoch=2)
+
+
 # ----------------------------------------------------------------------------- free final time
 
 V_UP, H_STAR = 5.0, 1.0
