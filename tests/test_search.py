@@ -32,6 +32,25 @@ def test_box_samples_lie_in_the_box():
     assert np.all(np.asarray(xs) >= np.asarray(lo)) and np.all(np.asarray(xs) <= np.asarray(hi))
 
 
+def test_box_samples_take_bounds_and_the_lower_upper_shorthands():
+    lo, hi = jnp.array([-1.0, 2.0]), jnp.array([1.0, 6.0])
+    key = jax.random.key(2)
+    xs = hj.box_samples(key, (lo, hi), 4000)
+    for same in (hj.box_samples(key, lo, hi, 4000), hj.box_samples(key, lower=lo, upper=hi, num=4000)):
+        np.testing.assert_array_equal(same, xs)
+    # uniform on [lo, hi]: in the box, mean (lo + hi) / 2 and variance (hi - lo)^2 / 12, each
+    # within 4 standard errors for 4000 samples
+    x = np.asarray(xs)
+    assert np.all(x >= np.asarray(lo)) and np.all(x <= np.asarray(hi))
+    width = np.asarray(hi - lo)
+    assert np.all(np.abs(x.mean(0) - np.asarray(lo + hi) / 2) < 4 * width / np.sqrt(12 * 4000))
+    assert np.all(np.abs(x.var(0) - width**2 / 12) < 4 * width**2 / np.sqrt(180 * 4000))
+    with pytest.raises(ValueError, match="bounds and lower"):
+        hj.box_samples(key, (lo, hi), 8, lower=lo)
+    with pytest.raises(TypeError, match="'lowr'"):
+        hj.box_samples(key, (lo, hi), 8, lowr=lo)
+
+
 def test_point_on_a_circle_inside_a_half_plane():
     w = CIRCLE_IN_HALF_PLANE(A)
     found = np.asarray(w.found)
