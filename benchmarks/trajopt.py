@@ -62,7 +62,7 @@ def hopper_problem():
     target = jnp.zeros((n + 1, 2)).at[-1].set(jnp.array([1.5, 0.0]))
     problem = hj.HybridLQRProblem(hopper, lambda u: {"g": G, "k": 100.0, "l0": 1.0, "u": u}, jnp.array([1.2, 0.0]),
                                   "flight", ts, target, jnp.zeros((2, 2)), 1e-4, 1e3 * jnp.eye(2),
-                                  lower=0.0, upper=60.0)
+                                  bounds=(0.0, 60.0))
     return problem, jnp.zeros((n, 1)), (0.3, 1.0, 3.0)
 
 
