@@ -45,9 +45,9 @@ def ball_problem():
     cargs = lambda u: {"g": G, "e": 0.8, "u": u}
     Q = jnp.diag(jnp.array([10.0, 1.0]))
     x0 = jnp.array([1.0, 0.0])
-    ref = _initial(hj.HybridLQRProblem(ball, cargs, x0, "flight", ts, jnp.zeros((n + 1, 2)), Q, 1e-3, 10 * Q),
+    ref = _initial(hj.HybridILQR(ball, cargs, x0, "flight", ts, jnp.zeros((n + 1, 2)), Q, 1e-3, 10 * Q),
                    jnp.zeros((n, 1))).xs
-    problem = hj.HybridLQRProblem(ball, cargs, x0, "flight", ts, ref, Q, 1e-3, 10 * Q)
+    problem = hj.HybridILQR(ball, cargs, x0, "flight", ts, ref, Q, 1e-3, 10 * Q)
     return problem, jnp.full((n, 1), 2.5), (0.03, 0.1, 0.3)
 
 
@@ -60,7 +60,7 @@ def hopper_problem():
          hj.Transition("stance", "flight", guard=lambda t, x, a: a["l0"] - x[0], name="liftoff")])
     n, ts = 18, jnp.linspace(0.0, 0.9, 19)
     target = jnp.zeros((n + 1, 2)).at[-1].set(jnp.array([1.5, 0.0]))
-    problem = hj.HybridLQRProblem(hopper, lambda u: {"g": G, "k": 100.0, "l0": 1.0, "u": u}, jnp.array([1.2, 0.0]),
+    problem = hj.HybridILQR(hopper, lambda u: {"g": G, "k": 100.0, "l0": 1.0, "u": u}, jnp.array([1.2, 0.0]),
                                   "flight", ts, target, jnp.zeros((2, 2)), 1e-4, 1e3 * jnp.eye(2),
                                   bounds=(0.0, 60.0))
     return problem, jnp.zeros((n, 1)), (0.3, 1.0, 3.0)

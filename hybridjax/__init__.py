@@ -46,6 +46,7 @@ from ._definition.system import ZenoCompletion as ZenoCompletion
 from ._definition.validation import DefinitionError as DefinitionError
 from ._estimation.kalman import KalmanResult as KalmanResult
 from ._estimation.kalman import SaltedKalmanFilter as SaltedKalmanFilter
+from ._optimise.ilqr import HybridILQR as HybridILQR
 from ._optimise.ilqr import HybridILQRResult as HybridILQRResult
 from ._optimise.ilqr import HybridLQRProblem as HybridLQRProblem
 from ._optimise.ilqr import hybrid_ilqr as hybrid_ilqr

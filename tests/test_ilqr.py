@@ -104,8 +104,8 @@ TRACK_SIM = hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=1e-10, a
 
 def test_lqr_problem_takes_simulator_and_bounds_and_their_shorthands():
     track = (BALL, ball_args, X0, "flight", TS, REFERENCE.xs, Q, 1e-3, 10 * Q)
-    problem = hj.HybridLQRProblem(*track, simulator=TRACK_SIM)
-    assert eqx.tree_equal(problem, TRACK)
+    problem = hj.HybridILQR(*track, simulator=TRACK_SIM)
+    assert eqx.tree_equal(problem, TRACK) and isinstance(TRACK, hj.HybridILQR)
     for kw in (dict(max_events=2), dict(max_epochs=2, stepsize_controller=TRACK_SIM.stepsize_controller)):
         assert eqx.tree_equal(hj.HybridLQRProblem(*track, **kw), problem)
     assert problem.max_epochs == problem.max_events == 2 and problem.stepsize_controller.rtol == 1e-10

@@ -36,8 +36,8 @@ from .._optimise.multiple_shooting import rk4_flow
 from .._solve.simulator import Simulator, simulator_of
 
 
-class HybridLQRProblem(eqx.Module):
-    r"""A tracking problem for `hybrid_ilqr`: minimise
+class HybridILQR(eqx.Module):
+    r"""A tracking problem for `hybrid_ilqr` (`hj.HybridLQRProblem` is another name for it): minimise
 
     $J = \sum_{k<N} \tfrac12 (x_k - r_k)^T Q (x_k - r_k) + \tfrac12 u_k^T R u_k
     + \tfrac12 (x_N - r_N)^T Q_f (x_N - r_N)$
@@ -75,7 +75,7 @@ class HybridLQRProblem(eqx.Module):
     !!! Example
 
         ```python
-        problem = hj.HybridLQRProblem(ball, lambda u: {"g": 9.8, "e": 0.8, "u": u[0]},
+        problem = hj.HybridILQR(ball, lambda u: {"g": 9.8, "e": 0.8, "u": u[0]},
                                       x0, "flight", ts, reference, Q, R, Qf, bounds=(-5.0, 5.0))
         result = hj.hybrid_ilqr(problem, jnp.zeros((len(ts) - 1, 1)), iterations=20)
         ```
@@ -113,26 +113,26 @@ class HybridLQRProblem(eqx.Module):
     ):
         dims = {m.dim for m in system.modes}
         if len(dims) != 1:
-            raise ValueError("HybridLQRProblem: every mode needs the same state dimension, got "
+            raise ValueError("HybridILQR: every mode needs the same state dimension, got "
                              f"{sorted(dims)}.")
         n = dims.pop()
         ts = jnp.asarray(ts, float)
         reference = jnp.asarray(reference, float)
         if ts.ndim != 1 or ts.shape[0] < 2 or not bool(jnp.all(jnp.diff(ts) > 0)):
-            raise ValueError("HybridLQRProblem: ts must be an increasing 1-D grid of at least 2 times.")
+            raise ValueError("HybridILQR: ts must be an increasing 1-D grid of at least 2 times.")
         if reference.shape != (ts.shape[0], n):
-            raise ValueError(f"HybridLQRProblem: reference has shape {reference.shape}, expected "
+            raise ValueError(f"HybridILQR: reference has shape {reference.shape}, expected "
                              f"{(ts.shape[0], n)} (one state per grid time).")
-        check_int("HybridLQRProblem", "substeps", substeps, 1)
-        bounds = bounds_of("HybridLQRProblem", bounds, shorthands)
+        check_int("HybridILQR", "substeps", substeps, 1)
+        bounds = bounds_of("HybridILQR", bounds, shorthands)
         max_events = shorthands.pop("max_events", None)  # max_epochs under its other name
         if max_events is not None:
             if simulator is not None:
-                raise ValueError("HybridLQRProblem: simulator=hj.Simulator(...) holds the run's settings: "
+                raise ValueError("HybridILQR: simulator=hj.Simulator(...) holds the run's settings: "
                                  "pass max_events there (as max_epochs), not beside it.")
-            shorthands["max_epochs"] = one_of("HybridLQRProblem", max_epochs=shorthands.get("max_epochs"),
+            shorthands["max_epochs"] = one_of("HybridILQR", max_epochs=shorthands.get("max_epochs"),
                                               max_events=max_events, default=None)
-        simulator = simulator_of("HybridLQRProblem", simulator, shorthands, defaults={
+        simulator = simulator_of("HybridILQR", simulator, shorthands, defaults={
             "stepsize_controller": diffrax.PIDController(rtol=1e-10, atol=1e-10), "max_epochs": 2})
         self.system, self.control_args = system, control_args
         self.x0, self.mode0 = jnp.asarray(x0, float), system.mode_index(mode0)
@@ -216,7 +216,7 @@ def _record(problem, sol):
             sol.states_before, sol.states_after, sol.epoch_modes, sol.status_code)
 
 
-def _rollout(problem: HybridLQRProblem, policy) -> _Rollout:
+def _rollout(problem: HybridILQR, policy) -> _Rollout:
     """Roll the hybrid system out on the grid, u_k = policy(k, x_k, events so far)."""
 
     def step(carry, k):
@@ -233,7 +233,7 @@ def _rollout(problem: HybridLQRProblem, policy) -> _Rollout:
                     problem.cost(xs, us))
 
 
-def _linearise_interval(problem: HybridLQRProblem, roll: _Rollout, k):
+def _linearise_interval(problem: HybridILQR, roll: _Rollout, k):
     """(A_k, B_k): flow segments by AD of RK4, joined at each event by its saltation matrix."""
     n, m = problem.x0.shape[0], roll.us.shape[1]
     u, t_a, t_b = roll.us[k], problem.ts[k], problem.ts[k + 1]
@@ -257,13 +257,13 @@ def _linearise_interval(problem: HybridLQRProblem, roll: _Rollout, k):
     return A, B
 
 
-def linearise(problem: HybridLQRProblem, rollout: "_Rollout"):
+def linearise(problem: HybridILQR, rollout: "_Rollout"):
     """(A_k, B_k) for every interval of a rollout (vmapped over k)."""
     N = problem.ts.shape[0] - 1
     return jax.vmap(lambda k: _linearise_interval(problem, rollout, k))(jnp.arange(N))
 
 
-def _backward(problem: HybridLQRProblem, roll: _Rollout, A, B, mu):
+def _backward(problem: HybridILQR, roll: _Rollout, A, B, mu):
     """The Riccati recursion of iLQR: feedforward d_k and gains K_k, and the expected decrease."""
     dx = roll.xs - problem.reference
     Vx, Vxx = problem.Qf @ dx[-1], problem.Qf
@@ -287,7 +287,7 @@ def _backward(problem: HybridLQRProblem, roll: _Rollout, A, B, mu):
     return d, K, jnp.sum(dV)
 
 
-def _extensions(problem: HybridLQRProblem, roll: _Rollout, K):
+def _extensions(problem: HybridILQR, roll: _Rollout, K):
     """For each knot t_k, the nominal trajectory extended across its nearest events:
     `late` (continued past the last event before t_k in its pre-event mode, for a rollout that
     has not taken it yet) and `early` (the state after the next event integrated back to t_k in
@@ -338,12 +338,12 @@ def _policy(problem, nominal: _Rollout, d, K, ext, alpha):
 
 
 @eqx.filter_jit
-def _initial(problem: HybridLQRProblem, us):
+def _initial(problem: HybridILQR, us):
     return _rollout(problem, lambda k, x, count: us[k])
 
 
 @eqx.filter_jit
-def _iteration(problem: HybridLQRProblem, nominal: _Rollout, mu, alphas):
+def _iteration(problem: HybridILQR, nominal: _Rollout, mu, alphas):
     A, B = linearise(problem, nominal)
     d, K, dV = _backward(problem, nominal, A, B, mu)
     ext = _extensions(problem, nominal, K)
@@ -351,6 +351,10 @@ def _iteration(problem: HybridLQRProblem, nominal: _Rollout, mu, alphas):
     costs = jnp.where(jnp.all(trials.status == 0, axis=1) & jnp.isfinite(trials.cost), trials.cost, jnp.inf)
     best = jnp.argmin(costs)
     return jax.tree_util.tree_map(lambda a: a[best], trials), costs[best], dV
+
+
+# The problem under the name it had first: `hj.HybridLQRProblem(...)` builds a `HybridILQR`.
+HybridLQRProblem = HybridILQR
 
 
 class HybridILQRResult(eqx.Module):
@@ -379,7 +383,7 @@ class HybridILQRResult(eqx.Module):
 
 
 def hybrid_ilqr(
-    problem: HybridLQRProblem,
+    problem: HybridILQR,
     controls: Float[ArrayLike, "N m"],
     *,
     iterations: int = 20,
