@@ -1,4 +1,4 @@
-"""The engines' dense output: the weights of diffrax's interpolation at fixed fractions of a
+"""The batched engine's dense output: the weights of diffrax's interpolation at fixed fractions of a
 step, and its Chebyshev series, as linear maps of the step's stages."""
 
 import functools

@@ -29,7 +29,7 @@ for forward mode, `bounded` for both: a bare `lax.while_loop` cannot be reverse-
 The guards are sampled on the dense output at constant fractions of the step (for an explicit
 Runge-Kutta solver, constant weights of its stages, `dense_weights`: elementwise arithmetic,
 where diffrax's interpolation is a small matrix product per sample); events are located on
-the same polynomial as a Chebyshev series formed once per held step (`search_dense`).
+diffrax's interpolation itself.
 
 Event times are differentiated by the implicit function theorem with the true vector field,
 dt*/dtheta = -(dg/dtheta) / (D_t g + D_x g F(t*, x*)), rather than through the root finder's
@@ -64,7 +64,7 @@ from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import detect_zeno
 from .._step.runge_kutta import UnrolledERK
-from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
+from .dense_weights import dense_weights, stage_combination
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -586,25 +586,11 @@ class Loop:
         return _select(active, new, st_all), saved
 
     def dense(self, t, t_next, dense_info):
-        """The step's dense output on [t, t_next], diffrax's interpolation: the saved states of
-        a step without an event."""
+        """The step's dense output on [t, t_next]: diffrax's interpolation, where events are
+        located (near grazing a root moves by the rounding error of g over its slope, and a
+        re-expansion of the polynomial, in the Chebyshev basis or by stage weights, adds to
+        that error)."""
         return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
-
-    def search_dense(self, t, t_next, dense_info):
-        """The dense output on which a held step's event is located and its pre-event state and
-        save times are read. For an unrolled explicit RK it is diffrax's interpolating
-        polynomial written as a Chebyshev series, its coefficients formed once per step from the
-        stages (`ChebyshevDense`, as the batched engine's): each of the searches' many
-        evaluations, and the derivatives Newton's method takes of them, is then a short
-        recurrence instead of a pass over the stages (a small matrix product per evaluation,
-        which `jax.vmap` turns into a batched dot). The event time found and the pre-event
-        state come from this one polynomial, so the state lies in the guard. Other solvers:
-        diffrax's interpolation."""
-        if not isinstance(self.solver, UnrolledERK):
-            return self.dense(t, t_next, dense_info)
-        ks = [dense_info["k"][i] for i in range(dense_info["k"].shape[0])]
-        A = chebyshev_weights(self.solver.interpolation_cls, len(ks), self.dtype)
-        return ChebyshevDense.from_stages(A, t, t_next, dense_info["y0"], dense_info["y1"], ks)
 
     def resolve_stage(self, st: LoopState, saved):
         """The held steps: locate the first event on each step's dense output (`event_brackets`,
@@ -615,8 +601,8 @@ class Loop:
         st, args = mask_inputs(active, (st, self.args))
         kern, mode = self.kern, st.mode
         t, t_next, dense_info = st.p_t0, st.p_t1, st.p_dense
-        interp = self.search_dense(t, t_next, dense_info)
-        interp_sg = self.search_dense(sg(t), sg(t_next), sg(dense_info))
+        interp = self.dense(t, t_next, dense_info)
+        interp_sg = self.dense(sg(t), sg(t_next), sg(dense_info))
         args_sg = sg(args)
         s_ext = self._sample_times(t, t_next)
         h = sg(t_next - t)
