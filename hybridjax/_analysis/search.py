@@ -262,9 +262,23 @@ def search(
 
 
 def box_samples(
-    key: PRNGKeyArray, lower: Float[Array, " n"], upper: Float[Array, " n"], num: int
-) -> Float[Array, "num n"]:
-    """`num` points drawn uniformly in the box [lower, upper] (componentwise)."""
+    key: PRNGKeyArray,
+    lower: Float[Array, " n"],
+    upper: Float[Array, " n"],
+    num_samples: int | None = None,
+    **shorthands,
+) -> Float[Array, "num_samples n"]:
+    """`num_samples` points drawn uniformly in the box [lower, upper] (componentwise), from the
+    `jax.random` key `key`.
+
+    **Keyword shorthand:** `num`: `num_samples`.
+    """
+    unknown = sorted(set(shorthands) - {"num"})
+    if unknown:
+        raise TypeError(f"box_samples() got an unexpected keyword argument {unknown[0]!r}.")
+    num = one_of("box_samples", num_samples=num_samples, num=shorthands.get("num"), default=None)
+    if num is None:
+        raise TypeError("box_samples() missing the number of samples num_samples.")
     lower, upper = jnp.asarray(lower), jnp.asarray(upper)
     dtype = jnp.result_type(lower.dtype, upper.dtype, float)
     u = jax.random.uniform(key, (num,) + lower.shape, dtype)

@@ -885,7 +885,7 @@ def contact_system(
     form: str = "mask",
     max_modes: int = 64,
     relabels: Sequence[Relabel] = (),
-    seed: int | None = None,
+    **shorthands,
 ) -> AbstractContactSystem:
     r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
 
@@ -907,7 +907,7 @@ def contact_system(
       built needs a system built over all of them.
     - `num_samples`, `num_starts`, `tol`, `key`: the point search (samples drawn in the
       scene's `bounds` x `t_bounds`; violation accepted as zero; `key` a `jax.random` key,
-      default `jax.random.key(0)`). Shorthand: `seed=s` for `key=jax.random.key(s)`.
+      default `jax.random.key(0)`).
     - `margin`: the least approach speed of an impact and the least pulling force of a
       lift-off that a witness must show, in the scene's units.
     - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
@@ -923,6 +923,9 @@ def contact_system(
     - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
       set goes to its `target` set, the state relabelled).
 
+    **Keyword shorthand** (passing it with `key` is a `ValueError`): `seed=s` for
+    `key=jax.random.key(s)`.
+
     !!! Example
 
         ```python
@@ -932,7 +935,10 @@ def contact_system(
         system.contact_forces(sol)
         ```
     """
-    key = point_search_key(key, seed)
+    unknown = sorted(set(shorthands) - {"seed"})
+    if unknown:
+        raise TypeError(f"contact_system() got an unexpected keyword argument {unknown[0]!r}.")
+    key = point_search_key(key, shorthands.get("seed"))
     if redundant not in ("error", "least_norm"):
         raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
     if form not in ("branch", "mask"):
