@@ -273,6 +273,15 @@ def test_the_scene_takes_the_package_wide_names():
         hj.contact_system(scene, ["free"], args, key=jax.random.key(3), seed=3)
 
 
+def test_contact_system_takes_seed_as_a_keyword_shorthand():
+    # seed is a shorthand of key (test above: the same build); an unknown keyword is named
+    scene, args = _ball_scene(), {"g": 9.81, "e": 0.8}
+    with pytest.raises(TypeError, match="unexpected keyword argument 'sed'"):
+        hj.contact_system(scene, ["free"], args, sed=3)
+    with pytest.raises(ValueError, match="key and seed are the same option"):
+        hj.contact_system(scene, ["free"], args, key=jax.random.key(3), seed=3)
+
+
 # ---------------------------------------------------------------------------- Simulator
 @pytest.mark.parametrize("kwargs, match", [
     (dict(solver="tsit5"), "Simulator: solver must be"),

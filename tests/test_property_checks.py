@@ -5,6 +5,7 @@ Each system is checked with a few `args`; its searches compile once (array-value
 
 import math
 
+import diffrax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -178,6 +179,24 @@ def test_new_args_reuse_the_compiled_searches():
     report = hj.check_properties(THERMO, {**THERMO_ARGS, "s": 21.0}, bounds=THERMO_BOUNDS)
     assert compile_count() == before
     np.testing.assert_allclose(report.achievable[0].state, [21.0 - 4], atol=1e-6)
+
+
+def test_check_properties_takes_a_simulator_for_the_start_rules_tolerances():
+    # The band of the start rule comes from the simulator's step-size controller; rtol, atol are
+    # shorthands for a PIDController with them. The thresholds are those of the closed form.
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    by_simulator = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS,
+                                       simulator=hj.Simulator(stepsize_controller=controller))
+    by_tolerances = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, rtol=1e-8, atol=1e-8)
+    assert repr(by_simulator) == repr(by_tolerances)
+    s = THERMO_ARGS["s"]
+    np.testing.assert_allclose(
+        [float(a.state[0]) for a in by_simulator.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
+    )
+    with pytest.raises(ValueError, match="simulator and rtol are the same option"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, simulator=hj.Simulator(), rtol=1e-8)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'max_epochs'"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, max_epochs=8)
 
 
 def thermostat_variant() -> hj.HybridSystem:
