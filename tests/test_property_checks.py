@@ -12,6 +12,7 @@ import pytest
 
 import hybridjax as hj
 from hybridjax import examples
+from hybridjax._analysis.properties import _start_tolerances
 
 from helpers import compile_count, line_system
 
@@ -193,6 +194,11 @@ def test_check_properties_takes_a_simulator_for_the_start_rules_tolerances():
     np.testing.assert_allclose(
         [float(a.state[0]) for a in by_simulator.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
     )
+    # the band's tolerances: the controller's, or sqrt(eps) for one without (as the simulation loop)
+    loose = hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-9))
+    constant = hj.Simulator(stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+    assert _start_tolerances(loose, None, None, jnp.float64) == (1e-6, 1e-9)
+    assert _start_tolerances(constant, None, None, jnp.float64) == (math.sqrt(np.finfo(np.float64).eps),) * 2
     with pytest.raises(ValueError, match="simulator and rtol are the same option"):
         hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, simulator=hj.Simulator(), rtol=1e-8)
     with pytest.raises(TypeError, match="unexpected keyword argument 'max_epochs'"):
