@@ -195,6 +195,7 @@ def _run_settings(simulator: Simulator | None, shorthands: dict[str, Any]) -> tu
     chunks are sharded over: the `devices` shorthand, else those of the simulator's
     `BatchedEngine`, else every device; the simulator's batched engine set to those devices."""
     batch = {name: shorthands.pop(name) for name in ("block", "lanes", "devices") if name in shorthands}
+    batch = {name: value for name, value in batch.items() if value is not None}  # None: not given
     if simulator is not None and batch:
         raise ValueError(f"monte_carlo: simulator and {' and '.join(batch)} are the same option (the "
                          "simulator's BatchedEngine holds them); pass one of them.")
