@@ -182,14 +182,19 @@ def test_new_args_reuse_the_compiled_searches():
     np.testing.assert_allclose(report.achievable[0].state, [21.0 - 4], atol=1e-6)
 
 
-def test_check_properties_takes_a_simulator_for_the_start_rules_tolerances():
+def test_check_properties_takes_a_simulator_and_search_options():
     # The band of the start rule comes from the simulator's step-size controller; rtol, atol are
     # shorthands for a PIDController with them. The thresholds are those of the closed form.
     controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
     by_simulator = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS,
                                        simulator=hj.Simulator(stepsize_controller=controller))
     by_tolerances = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, rtol=1e-8, atol=1e-8)
-    assert repr(by_simulator) == repr(by_tolerances)
+    # search=hj.SearchOptions(...): the refinement's settings, its fields' keywords shorthands
+    by_search = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, rtol=1e-8,
+                                    search=hj.SearchOptions(num_starts=8, iterations=64, tol=1e-14))
+    by_keywords = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, atol=1e-8, num_starts=8,
+                                      max_steps=64, tol=1e-14)
+    assert repr(by_simulator) == repr(by_tolerances) == repr(by_search) == repr(by_keywords)
     s = THERMO_ARGS["s"]
     np.testing.assert_allclose(
         [float(a.state[0]) for a in by_simulator.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
@@ -201,6 +206,8 @@ def test_check_properties_takes_a_simulator_for_the_start_rules_tolerances():
     assert _start_tolerances(constant, None, None, jnp.float64) == (math.sqrt(np.finfo(np.float64).eps),) * 2
     with pytest.raises(ValueError, match="simulator and rtol are the same option"):
         hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, simulator=hj.Simulator(), rtol=1e-8)
+    with pytest.raises(ValueError, match="search and num_starts are the same option"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, search=hj.SearchOptions(), num_starts=8)
     with pytest.raises(TypeError, match="unexpected keyword argument 'max_epochs'"):
         hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, max_epochs=8)
 

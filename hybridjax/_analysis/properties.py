@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._analysis.search import box_samples, search
+from .._analysis.search import SearchOptions, box_samples, search, search_options
 from .._core.names import one_of
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
@@ -520,11 +520,9 @@ def check_properties(
     num_samples: int = 256,
     key: Any = None,
     margin: float = 1e-6,
-    tol: float = 1e-14,
-    num_starts: int = 8,
-    iterations: int | None = None,
     max_chain: int = 16,
     simulator: Simulator | None = None,
+    search: SearchOptions | None = None,
     **shorthands,
 ) -> PropertyReport:
     r"""Check a hybrid system's properties (A. M. Johnson, "Hybrid Dynamical Systems", section 3)
@@ -568,19 +566,22 @@ def check_properties(
     - `num_samples`: samples per mode; `key`: a `jax.random` key (default `key(0)`).
     - `margin`: how far a strict inequality must hold (a guard "not containing" a point has
       $g \ge$ `margin`; a flow "leaving" has $\dot a \le -$`margin`).
-    - `tol`, `num_starts`, `iterations` (default 64): passed to `find_point` for each search.
-      The defaults of `tol` and `margin` assume float64 (`jax_enable_x64`).
     - `max_chain`: chains longer than this are reported as cycles.
     - `simulator`: the `hj.Simulator` whose executions the report is about: the `rtol`, `atol`
       of its step-size controller set the band within which the simulator's start rule treats
       a guard as touched (as in `simulate`; a controller without tolerances: $\sqrt{\epsilon}$).
       Default: a `PIDController(rtol=1e-8, atol=1e-8)`.
+    - `search`: an `hj.SearchOptions` (`num_starts`, `iterations`, `tol`), how each search
+      refines its best samples, as in `find_point`. The defaults of its `tol` and of `margin`
+      assume float64 (`jax_enable_x64`).
 
     **Keyword shorthands** (passing one with the name it stands for is a `ValueError`):
 
     - `rtol`, `atol`: `simulator=hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=rtol,
       atol=atol))` (each 1e-8 where not given).
-    - `t_window`: `t_bounds`; `max_steps` (optimistix's name): `iterations`.
+    - `num_starts`, `iterations` (or `max_steps`, optimistix's name), `tol`:
+      `search=hj.SearchOptions(...)` with them.
+    - `t_window`: `t_bounds`.
 
     Returns a `PropertyReport` (a table as its `repr`, HTML in a notebook).
 
@@ -594,11 +595,10 @@ def check_properties(
         report  # a table: each transition achievable at its threshold
         ```
     """
-    unknown = sorted(set(shorthands) - {"rtol", "atol", "t_window", "max_steps"})
+    search = search_options("check_properties", search, shorthands)
+    unknown = sorted(set(shorthands) - {"rtol", "atol", "t_window"})
     if unknown:
         raise TypeError(f"check_properties() got an unexpected keyword argument {unknown[0]!r}.")
-    iterations = one_of("check_properties", iterations=iterations, max_steps=shorthands.get("max_steps"),
-                        default=64)
     dtype = jnp.result_type(float)
     rtol, atol = _start_tolerances(simulator, shorthands.get("rtol"), shorthands.get("atol"), dtype)
     key = jax.random.key(0) if key is None else key
@@ -622,8 +622,8 @@ def check_properties(
     names = system.mode_names
     if Q.rows:
         w = _search_batch(
-            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, tol, num_starts,
-            iterations,
+            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, search.tol,
+            search.num_starts, search.iterations,
         )
         found, wt, wx = np.asarray(w.found), np.asarray(w.t), np.asarray(w.x)
     else:

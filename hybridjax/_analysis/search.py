@@ -20,11 +20,65 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._core import small_linalg as small_linalg
 from .._core.names import one_of
+
+
+class SearchOptions(eqx.Module):
+    r"""How the point searches of `check_properties` and `contact_system` refine their samples,
+    as `find_point`'s keywords of the same names: the `num_starts` samples of least violation
+    $v$ are refined by a dogleg trust-region least-squares solve of at most `iterations` steps
+    each, and a point counts as found where $v \le$ `tol`.
+
+    **Fields:** `num_starts` (default 8), `iterations` (64), `tol` (1e-14, for float64).
+
+    ```python
+    report = hj.check_properties(system, args, bounds=bounds,
+                                 search=hj.SearchOptions(num_starts=16, iterations=128))
+    ```
+    """
+
+    num_starts: int = eqx.field(static=True, default=8)  # static: how many starts (a shape)
+    iterations: int = eqx.field(static=True, default=64)  # static: a loop bound
+    tol: float = 1e-14
+
+    def __check_init__(self):
+        for name in ("num_starts", "iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"SearchOptions: {name} must be an int >= 1, got {value!r}.")
+        tol = self.tol
+        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.floating)) or not tol >= 0:
+            raise ValueError(f"SearchOptions: tol must be a number >= 0, got {self.tol!r}.")
+
+
+# The keyword shorthands of `search=` (with `max_steps`, optimistix's name of `iterations`).
+SEARCH_SHORTHANDS = ("num_starts", "iterations", "max_steps", "tol")
+
+
+def search_options(owner: str, search: SearchOptions | None, shorthands: dict[str, Any]) -> SearchOptions:
+    """The `SearchOptions` of a call: `search` itself, or built from the keyword shorthands
+    `num_starts`, `iterations` (or `max_steps`), `tol`, taken out of `shorthands` (None counts
+    as not given). A shorthand beside `search`, or `iterations` beside `max_steps`, is a
+    `ValueError` naming both."""
+    given = {name: shorthands.pop(name) for name in SEARCH_SHORTHANDS if name in shorthands}
+    given = {name: value for name, value in given.items() if value is not None}
+    iterations = one_of(owner, iterations=given.pop("iterations", None),
+                        max_steps=given.pop("max_steps", None), default=None)
+    if iterations is not None:
+        given["iterations"] = iterations
+    if search is None:
+        return SearchOptions(**given)
+    if not isinstance(search, SearchOptions):
+        raise TypeError(f"{owner}: search must be an hj.SearchOptions, got {type(search).__name__}.")
+    if given:
+        raise ValueError(f"{owner}: search and {' and '.join(sorted(given))} are the same option (fields of "
+                         "hj.SearchOptions); pass one of them.")
+    return search
 
 
 class Witness(eqx.Module):
