@@ -921,7 +921,6 @@ def contact_system(
     - `max_modes`: a build that would exceed this many modes stops with an error.
     - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
       set goes to its `target` set, the state relabelled).
-
     - `search`: an `hj.SearchOptions` (`num_starts`, `iterations`, `tol`: how the best samples
       are refined, the violation accepted as zero), as in `find_point`.
 
