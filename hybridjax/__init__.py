@@ -23,6 +23,7 @@ from ._analysis.properties import check_properties as check_properties
 from ._analysis.saltation import VariationalJacobian as VariationalJacobian
 from ._analysis.saltation import saltation_matrix as saltation_matrix
 from ._analysis.saltation import variational_jacobian as variational_jacobian
+from ._analysis.search import SearchOptions as SearchOptions
 from ._analysis.search import Witness as Witness
 from ._analysis.search import box_samples as box_samples
 from ._analysis.search import constraint_violation as constraint_violation

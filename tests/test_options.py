@@ -273,6 +273,33 @@ def test_the_scene_takes_the_package_wide_names():
         hj.contact_system(scene, ["free"], args, key=jax.random.key(3), seed=3)
 
 
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(num_starts=0), "num_starts"), (dict(iterations=2.5), "iterations"), (dict(tol=-1.0), "tol"),
+])
+def test_search_options_name_the_field_at_fault(kwargs, field):
+    with pytest.raises(ValueError, match=f"SearchOptions: {field} must be"):
+        hj.SearchOptions(**kwargs)
+
+
+def test_contact_system_takes_search_options_and_keyword_shorthands():
+    # The build of the test above (its compiled search): search=hj.SearchOptions(...) and its
+    # shorthands num_starts, tol give the same system. The ball on a floor with e > 0 bounces:
+    # the impact's witness is on the floor (q = 0) moving down, its target the free set again.
+    scene = _ball_scene(bounds=((0.0, -5.0), (2.0, 5.0)), t_bounds=(0.0, 1.0))
+    args = {"g": 9.81, "e": 0.8}
+    by_object = hj.contact_system(scene, ["free"], args, seed=3, search=hj.SearchOptions(num_starts=8, tol=1e-14))
+    by_keywords = hj.contact_system(scene, ["free"], args, seed=3, num_starts=8, tol=1e-14)
+    assert by_object.report == by_keywords.report and by_object.mode_names == ("free",)
+    (src, tgt, kind, name, text), = by_object.achievable
+    assert (src, tgt, name) == ("free", "free", "floor")
+    q, dq = (float(text.split(f"{v}=(")[1].split(")")[0]) for v in ("q", "dq"))
+    assert abs(q) < 1e-6 and dq <= -1e-3  # on the floor, approaching by at least `margin`
+    with pytest.raises(ValueError, match="search and tol are the same option"):
+        hj.contact_system(scene, ["free"], args, search=hj.SearchOptions(), tol=1e-14)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'sed'"):
+        hj.contact_system(scene, ["free"], args, sed=3)
+
+
 # ---------------------------------------------------------------------------- Simulator
 @pytest.mark.parametrize("kwargs, match", [
     (dict(solver="tsit5"), "Simulator: solver must be"),

@@ -5,12 +5,14 @@ Each system is checked with a few `args`; its searches compile once (array-value
 
 import math
 
+import diffrax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import hybridjax as hj
 from hybridjax import examples
+from hybridjax._analysis.properties import _start_tolerances
 
 from helpers import compile_count, line_system
 
@@ -178,6 +180,36 @@ def test_new_args_reuse_the_compiled_searches():
     report = hj.check_properties(THERMO, {**THERMO_ARGS, "s": 21.0}, bounds=THERMO_BOUNDS)
     assert compile_count() == before
     np.testing.assert_allclose(report.achievable[0].state, [21.0 - 4], atol=1e-6)
+
+
+def test_check_properties_takes_a_simulator_and_search_options():
+    # The band of the start rule comes from the simulator's step-size controller; rtol, atol are
+    # shorthands for a PIDController with them. The thresholds are those of the closed form.
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-8)
+    by_simulator = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS,
+                                       simulator=hj.Simulator(stepsize_controller=controller))
+    by_tolerances = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, rtol=1e-8, atol=1e-8)
+    # search=hj.SearchOptions(...): the refinement's settings, its fields' keywords shorthands
+    by_search = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, rtol=1e-8,
+                                    search=hj.SearchOptions(num_starts=8, iterations=64, tol=1e-14))
+    by_keywords = hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, atol=1e-8, num_starts=8,
+                                      max_steps=64, tol=1e-14)
+    assert repr(by_simulator) == repr(by_tolerances) == repr(by_search) == repr(by_keywords)
+    s = THERMO_ARGS["s"]
+    np.testing.assert_allclose(
+        [float(a.state[0]) for a in by_simulator.achievable], [s - 4, s - 2, s + 4, s + 2], atol=1e-6
+    )
+    # the band's tolerances: the controller's, or sqrt(eps) for one without (as the simulation loop)
+    loose = hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-9))
+    constant = hj.Simulator(stepsize_controller=diffrax.ConstantStepSize(), dt0=0.01)
+    assert _start_tolerances(loose, None, None, jnp.float64) == (1e-6, 1e-9)
+    assert _start_tolerances(constant, None, None, jnp.float64) == (math.sqrt(np.finfo(np.float64).eps),) * 2
+    with pytest.raises(ValueError, match="simulator and rtol are the same option"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, simulator=hj.Simulator(), rtol=1e-8)
+    with pytest.raises(ValueError, match="search and num_starts are the same option"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, search=hj.SearchOptions(), num_starts=8)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'max_epochs'"):
+        hj.check_properties(THERMO, THERMO_ARGS, bounds=THERMO_BOUNDS, max_epochs=8)
 
 
 def thermostat_variant() -> hj.HybridSystem:

@@ -1,9 +1,11 @@
 """Global sensitivity of the bouncing ball's first impact time and bounce count: Sobol' indices
 against closed forms and quadrature, Morris effects and DGSM against closed forms."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from scipy.stats import qmc
 
 import hybridjax as hj
 
@@ -124,3 +126,33 @@ def test_options_and_bounds_are_validated():
     x = hj.sample(BOUNDS, 1000, "lhs", 0)  # one point in each of the 1000 strata of each axis
     strata = np.floor((x - BOUNDS[:, 0]) / (BOUNDS[:, 1] - BOUNDS[:, 0]) * 1000)
     assert all(len(np.unique(strata[:, i])) == 1000 for i in range(2))
+
+
+def test_sample_takes_num_samples_and_a_jax_random_key():
+    # num_samples (n a shorthand); an int key, or the shorthand seed, is scipy's seed itself
+    named = hj.sample(BOUNDS, num_samples=64, key=3)
+    for other in (hj.sample(BOUNDS, n=64, seed=3), hj.sample(BOUNDS, 64, "sobol", 3)):
+        np.testing.assert_array_equal(other, named)
+    u = qmc.Sobol(2, scramble=True, seed=3).random_base2(6)
+    np.testing.assert_allclose(named, BOUNDS[:, 0] + u * (BOUNDS[:, 1] - BOUNDS[:, 0]), rtol=1e-15)
+    # A jax.random key: 64 scrambled Sobol' points, one in each 64th of each axis' range (a
+    # (0, m, 2)-net); the same key (typed or legacy) gives the same points, another key others.
+    key = jax.random.key(7)
+    x = hj.sample(BOUNDS, num_samples=64, key=key)
+    strata = np.floor((x - BOUNDS[:, 0]) / (BOUNDS[:, 1] - BOUNDS[:, 0]) * 64)
+    assert x.shape == (64, 2) and all(sorted(strata[:, i]) == list(range(64)) for i in range(2))
+    np.testing.assert_array_equal(hj.sample(BOUNDS, 64, key=jax.random.PRNGKey(7)), x)
+    assert not np.array_equal(hj.sample(BOUNDS, 64, key=jax.random.key(8)), x)
+    options = hj.SensitivityOptions(key=key)
+    assert options == hj.SensitivityOptions("sobol", options.seed)
+    assert hj.SensitivityOptions(seed=3) == hj.SensitivityOptions(key=3) != options
+    for call, names in ((lambda: hj.sample(BOUNDS, 64, key=key, seed=3), "key and seed"),
+                        (lambda: hj.sample(BOUNDS, 64, n=64), "num_samples and n"),
+                        (lambda: hj.SensitivityOptions(key=key, seed=3), "key and seed"),
+                        (lambda: hj.sobol_indices(MODEL, BOUNDS, 64, n=64), "num_samples and n"),
+                        (lambda: hj.dgsm(MODEL, BOUNDS, 64, n=64), "num_samples and n")):
+        with pytest.raises(ValueError, match=f"{names} are the same option"):
+            call()
+    with pytest.raises(TypeError, match="unexpected keyword argument 'num'"):
+        hj.sample(BOUNDS, num=64)
+

@@ -209,6 +209,36 @@ def test_chunked_arrays_and_sampler_paths_agree():
     assert diffrax is not None
 
 
+def test_monte_carlo_takes_a_simulator_and_num_samples():
+    x0, args = _mc_inputs(48)
+
+    def sampler(key, m):
+        return jnp.asarray(x0[:m]), jax.tree_util.tree_map(lambda v: jnp.asarray(v[:m]), args)
+
+    run = dict(mode0="flight", t1=4.0, chunk_size=48, progress=False)
+    a = hj.monte_carlo(BALL, sampler, num_samples=48, simulator=hj.Simulator(max_epochs=32), **run)
+    b = hj.monte_carlo(BALL, sampler, 48, max_epochs=32, **run)  # n positional, a shorthand
+    c = hj.monte_carlo(BALL, sampler, n=48, max_epochs=32, devices=1, **run)
+    # The same simulator: one compiled program for the three runs.
+    assert b.compile_s == 0 and c.compile_s == 0 and a.n == b.n == c.n == 48
+    for k, v in a.per_execution.items():
+        np.testing.assert_array_equal(b.per_execution[k], v, err_msg=k)
+        np.testing.assert_array_equal(c.per_execution[k], v, err_msg=k)
+    # Zeno time of the ball from rest at h: sqrt(2 h / g) (1 + e) / (1 - e)
+    t_inf = np.sqrt(2 * x0[:, 0] / 9.8) * (1 + args["e"]) / (1 - args["e"])
+    zeno = a.per_execution["status"] == hj.Status.ZENO
+    assert zeno.any()
+    np.testing.assert_allclose(a.per_execution["zeno_time"][zeno], t_inf[zeno], atol=1e-6)
+    with pytest.raises(ValueError, match="num_samples and n are the same option"):
+        hj.monte_carlo(BALL, sampler, 48, n=48, **run)
+    with pytest.raises(ValueError, match="simulator and devices are the same option"):
+        hj.monte_carlo(BALL, sampler, 48, simulator=hj.Simulator(), devices=1, **run)
+    with pytest.raises(ValueError, match="pass max_epochs there"):
+        hj.monte_carlo(BALL, sampler, 48, simulator=hj.Simulator(), max_epochs=32, **run)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'samples'"):
+        hj.monte_carlo(BALL, sampler, samples=48, **run)
+
+
 def test_progress_estimate_counts_run_time_only():
     from hybridjax._analysis.montecarlo import _Progress, _progress_line
 

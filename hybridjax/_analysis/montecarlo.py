@@ -16,6 +16,7 @@ of them, and each process reads back the rows of its own devices (pass a differe
 run, the same on every process).
 """
 
+import dataclasses
 import math
 import sys
 import time
@@ -27,10 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import PRNGKeyArray
 
+from .._core.names import one_of
 from .._core.status import STATUS_NAMES, Status
 from .._definition.system import HybridSystem
-from .._solve.simulate_batch import simulate_batch
+from .._solve.engines import AutoEngine, BatchedEngine, as_engine
+from .._solve.simulator import Simulator, simulator_of
 
 
 def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -186,59 +190,118 @@ def _remember(key, compiled) -> None:
         _COMPILED.popitem(last=False)
 
 
+def _run_settings(simulator: Simulator | None, shorthands: dict[str, Any]) -> tuple[Simulator, list]:
+    """The run's `Simulator` (from `simulator` or the keyword shorthands) and the devices its
+    chunks are sharded over: the `devices` shorthand, else those of the simulator's
+    `BatchedEngine`, else every device; the simulator's batched engine set to those devices."""
+    batch = {name: shorthands.pop(name) for name in ("block", "lanes", "devices") if name in shorthands}
+    batch = {name: value for name, value in batch.items() if value is not None}  # None: not given
+    if simulator is not None and batch:
+        raise ValueError(f"monte_carlo: simulator and {' and '.join(batch)} are the same option (the "
+                         "simulator's BatchedEngine holds them); pass one of them.")
+    sim = simulator_of("monte_carlo", simulator, shorthands)
+    engine = as_engine(sim.engine, **batch)
+    batched = engine.batched if isinstance(engine, AutoEngine) else engine
+    batched = batched if isinstance(batched, BatchedEngine) else None
+    wanted = batch.get("devices", batched.devices if batched is not None else None)
+    available = jax.devices()
+    if wanted is None:
+        devices = list(available)
+    elif isinstance(wanted, (int, np.integer)) and not isinstance(wanted, bool):
+        if not 1 <= wanted <= len(available):
+            raise ValueError(f"monte_carlo: devices={wanted}: between 1 and the {len(available)} device(s) "
+                             f"of the default backend.")
+        devices = list(available[:wanted])
+    else:
+        devices = list(wanted)
+    if batched is not None:
+        batched = dataclasses.replace(batched, devices=devices)
+        engine = AutoEngine(batched=batched) if isinstance(engine, AutoEngine) else batched
+    return dataclasses.replace(sim, engine=engine), devices
+
+
 def monte_carlo(
     system: HybridSystem,
-    sampler: Callable[[jax.Array, int], tuple[Any, Any]] | None = None,
-    n: int | None = None,
+    sampler: Callable[[PRNGKeyArray, int], tuple[Any, Any]] | None = None,
+    num_samples: int | None = None,
     *,
     x0: Any = None,
     args: Any = None,
     mode0: str | int = 0,
     t0: float = 0.0,
     t1: float = 1.0,
-    key: jax.Array | None = None,
+    key: PRNGKeyArray | None = None,
     chunk_size: int = 10_000,
     keep: str = "all",
     progress: bool = True,
-    devices: list | None = None,
-    **simulate_kwargs,
+    simulator: Simulator | None = None,
+    **shorthands,
 ) -> MonteCarloResult:
     r"""Run many executions of `system` in chunks, sharded across devices; summarise them.
 
     Give either `sampler(key, m) -> (x0 of shape (m, n), args pytree with leading axis m)`
-    with `n` executions (chunk c samples with `jax.random.fold_in(key, c)`), or arrays `x0`
-    (N, n) and `args` (a pytree whose leaves have leading axis N). Every chunk has the same
-    shape (the last one is padded), so one compilation serves the run.
+    with `num_samples` executions (chunk c samples with `jax.random.fold_in(key, c)`; `key` a
+    `jax.random` key, default `jax.random.PRNGKey(0)`), or arrays `x0` (N, n) and `args` (a
+    pytree whose leaves have leading axis N). Every chunk has the same shape (the last one is
+    padded), so one compilation serves the run.
+
+    Each chunk is one `simulator.batch(...)` call (`hj.Simulator`: solver, tolerances,
+    `max_epochs`, Zeno options, engine; default `hj.Simulator()`): on the batched engine where
+    it applies (explicit RK solvers), else as `jax.vmap(simulate)`. The chunk's batch axis is
+    sharded over the devices of the simulator's `BatchedEngine` (`devices`: None, the default,
+    every device of the default backend; an int, the first that many; or a list).
 
     Returns a `MonteCarloResult`: per-execution results (unless `keep="summary"`), the
     fraction of executions per status with 95% Wilson intervals, Zeno-time and event-count
-    statistics, timings. `simulate_kwargs` go to `simulate_batch` (solver, tolerances,
-    max_epochs, Zeno options, `engine`...): each chunk runs on the batched engine where it
-    applies (explicit RK solvers), else as `jax.vmap(simulate)`.
+    statistics, timings.
 
-    The compiled chunk program is kept (the last 8, by configuration: system and options by
+    The compiled chunk program is kept (the last 8, by configuration: system and simulator by
     equality, their functions by identity, chunk shapes, dtypes and shardings), so running
-    `monte_carlo` again on the same problem with another `n`, `sampler` or `key` does not
-    compile again (`compile_s` 0). Python numbers in `t0`, `t1` and the options are part of
+    `monte_carlo` again on the same problem with another `num_samples`, `sampler` or `key` does
+    not compile again (`compile_s` 0). Python numbers in `t0`, `t1` and the simulator are part of
     the program: a changed one compiles a new one.
 
     With `progress=True` a bar on stderr reports the compile once, on its own line ("compiled
     in 3.40 s", or that a compiled program was reused), then the executions done, the run time
     and the time left, estimated from the run time per execution so far (the compile excluded).
+
+    **Keyword shorthands** (passing one with the name it stands for is a `ValueError`):
+
+    - `n`: `num_samples` (also as the third positional argument).
+    - `simulate_batch`'s keywords (`solver`, `stepsize_controller`, `saveat`, `adjoint`,
+      `engine`, `options` and its shorthands `max_epochs`, `max_steps`, `zeno`, ...):
+      `simulator=hj.Simulator(...)` with them.
+    - `block`, `lanes`, `devices`: the simulator's `BatchedEngine` (`engine="auto"` or
+      `"batched"`), as in `simulate_batch`.
+
+    !!! Example
+
+        ```python
+        ball = hj.examples.bouncing_ball()
+
+        def sampler(key, m):
+            h = jax.random.uniform(key, (m,), minval=0.5, maxval=1.5)
+            return jnp.stack([h, jnp.zeros(m)], 1), {"g": jnp.full(m, 9.8), "e": jnp.full(m, 0.8)}
+
+        res = hj.monte_carlo(ball, sampler, num_samples=10_000, mode0="flight", t1=4.0,
+                             simulator=hj.Simulator(max_epochs=32))
+        res.status_fractions["ZENO"]  # (fraction, (low, high))
+        ```
     """
     if keep not in ("all", "summary"):
         raise ValueError(f"keep must be 'all' or 'summary', got {keep!r}.")
     if (sampler is None) == (x0 is None):
-        raise ValueError("Give either a sampler (with n) or arrays x0 (and args).")
+        raise ValueError("Give either a sampler (with num_samples) or arrays x0 (and args).")
+    num_samples = one_of("monte_carlo", num_samples=num_samples, n=shorthands.pop("n", None), default=None)
+    sim, devices = _run_settings(simulator, shorthands)
     if sampler is not None:
-        if n is None or n < 1:
-            raise ValueError("With a sampler, give the number of executions n >= 1.")
+        if num_samples is None or num_samples < 1:
+            raise ValueError("With a sampler, give the number of executions num_samples >= 1.")
         key = jax.random.PRNGKey(0) if key is None else key
-        total = int(n)
+        total = int(num_samples)
     else:
         x0 = np.asarray(x0)
         total = x0.shape[0]
-    devices = list(jax.devices()) if devices is None else list(devices)
     n_dev = len(devices)
     chunk = int(math.ceil(min(chunk_size, total) / n_dev) * n_dev)
     mesh = Mesh(np.asarray(devices), ("batch",))
@@ -246,8 +309,7 @@ def monte_carlo(
     mode_index = system.mode_index(mode0)
 
     def run_chunk(x, a):
-        sol = simulate_batch(system, x, mode_index, t0, t1, a, args_batched=a is not None,
-                             devices=devices, **simulate_kwargs)
+        sol = sim.batch(system, x, mode_index, t0, t1, a, args_batched=a is not None)
         return dict(status=sol.status_code, num_events=sol.num_events, final_time=sol.final_time,
                     final_mode=sol.final_mode, final_state=sol.final_state, zeno_time=sol.zeno_time)
 
@@ -279,8 +341,7 @@ def monte_carlo(
             # take the program an earlier call with the same configuration compiled.
             tc = time.perf_counter()
             bar.compiling()
-            cache_key = _program_key((system, mode_index, t0, t1, tuple(devices),
-                                      tuple(sorted(simulate_kwargs.items()))), (xs, a))
+            cache_key = _program_key((system, mode_index, t0, t1, tuple(devices), sim), (xs, a))
             compiled = _COMPILED.get(cache_key) if cache_key is not None else None
             if compiled is None:
                 compiled = run_chunk.lower(xs, a).compile()

@@ -30,12 +30,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._analysis.search import box_samples, search
+from .._analysis.search import SearchOptions, box_samples, search, search_options
 from .._core.names import one_of
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
 from .._definition.validation import domain_sizes
 from .._rules.start import start_decision
+from .._solve.simulator import Simulator
 
 # Relations a query imposes on each watched function (guards, then domain components) of the
 # mode it is about, or of the target mode after a reset. `STRICT` relations keep a `margin`
@@ -488,6 +489,28 @@ def _simple_cycles(edges: dict[int, set[int]]) -> list[tuple[int, ...]]:
     return cycles
 
 
+def _start_tolerances(simulator, rtol, atol, dtype) -> tuple[Any, Any]:
+    """The `rtol`, `atol` of the start rule's band: those of `simulator`'s step-size controller
+    (a controller without them: sqrt(eps), as the simulation loop takes), or the shorthands
+    `rtol`, `atol` (1e-8 each where not given)."""
+    given = [name for name, value in (("rtol", rtol), ("atol", atol)) if value is not None]
+    if simulator is None:
+        return (1e-8 if rtol is None else rtol), (1e-8 if atol is None else atol)
+    if not isinstance(simulator, Simulator):
+        raise TypeError("check_properties: simulator must be an hj.Simulator, got "
+                        f"{type(simulator).__name__}.")
+    if given:
+        raise ValueError(f"check_properties: simulator and {' and '.join(given)} are the same option (the "
+                         "tolerances of the simulator's step-size controller); pass one of them.")
+    controller = simulator.stepsize_controller
+    if controller is None:  # simulate's default controller for `dtype`
+        tol = 1e-8 if dtype == jnp.float64 else 1e-5
+        return tol, tol
+    eps = float(jnp.finfo(dtype).eps) ** 0.5
+    rtol, atol = getattr(controller, "rtol", None), getattr(controller, "atol", None)
+    return (eps if rtol is None else rtol), (eps if atol is None else atol)
+
+
 def check_properties(
     system: HybridSystem,
     args: Any = None,
@@ -497,14 +520,10 @@ def check_properties(
     num_samples: int = 256,
     key: Any = None,
     margin: float = 1e-6,
-    rtol: float = 1e-8,
-    atol: float = 1e-8,
-    tol: float = 1e-14,
-    num_starts: int = 8,
-    iterations: int | None = None,
     max_chain: int = 16,
-    t_window: tuple[float, float] | None = None,
-    max_steps: int | None = None,
+    simulator: Simulator | None = None,
+    search: SearchOptions | None = None,
+    **shorthands,
 ) -> PropertyReport:
     r"""Check a hybrid system's properties (A. M. Johnson, "Hybrid Dynamical Systems", section 3)
     by sampling each mode's states and searching locally for counterexamples.
@@ -543,17 +562,26 @@ def check_properties(
     - `bounds`: per mode (name or index), `(lower, upper)` (scalars or `(dim,)` arrays) for
       uniform samples in that box, or a sampler `(key, num) -> (num, dim)`.
     - `t_bounds`: `(t0, t1)`: times are sampled and searched in it (time-varying guards,
-      domains and flows), as in `find_point`; the default `(0, 0)` fixes t = 0. Shorthand:
-      `t_window`.
+      domains and flows), as in `find_point`; the default `(0, 0)` fixes t = 0.
     - `num_samples`: samples per mode; `key`: a `jax.random` key (default `key(0)`).
     - `margin`: how far a strict inequality must hold (a guard "not containing" a point has
       $g \ge$ `margin`; a flow "leaving" has $\dot a \le -$`margin`).
-    - `rtol`, `atol`: the tolerances of the simulation, which set the band within which the
-      simulator's start rule treats a guard as touched (as in `simulate`).
-    - `tol`, `num_starts`, `iterations` (default 64; shorthand: `max_steps`): passed to
-      `find_point` for each search. The defaults of
-      `tol` and `margin` assume float64 (`jax_enable_x64`).
     - `max_chain`: chains longer than this are reported as cycles.
+    - `simulator`: the `hj.Simulator` whose executions the report is about: the `rtol`, `atol`
+      of its step-size controller set the band within which the simulator's start rule treats
+      a guard as touched (as in `simulate`; a controller without tolerances: $\sqrt{\epsilon}$).
+      Default: a `PIDController(rtol=1e-8, atol=1e-8)`.
+    - `search`: an `hj.SearchOptions` (`num_starts`, `iterations`, `tol`), how each search
+      refines its best samples, as in `find_point`. The defaults of its `tol` and of `margin`
+      assume float64 (`jax_enable_x64`).
+
+    **Keyword shorthands** (passing one with the name it stands for is a `ValueError`):
+
+    - `rtol`, `atol`: `simulator=hj.Simulator(stepsize_controller=diffrax.PIDController(rtol=rtol,
+      atol=atol))` (each 1e-8 where not given).
+    - `num_starts`, `iterations` (or `max_steps`, optimistix's name), `tol`:
+      `search=hj.SearchOptions(...)` with them.
+    - `t_window`: `t_bounds`.
 
     Returns a `PropertyReport` (a table as its `repr`, HTML in a notebook).
 
@@ -567,8 +595,12 @@ def check_properties(
         report  # a table: each transition achievable at its threshold
         ```
     """
-    iterations = one_of("check_properties", iterations=iterations, max_steps=max_steps, default=64)
+    search = search_options("check_properties", search, shorthands)
+    unknown = sorted(set(shorthands) - {"rtol", "atol", "t_window"})
+    if unknown:
+        raise TypeError(f"check_properties() got an unexpected keyword argument {unknown[0]!r}.")
     dtype = jnp.result_type(float)
+    rtol, atol = _start_tolerances(simulator, shorthands.get("rtol"), shorthands.get("atol"), dtype)
     key = jax.random.key(0) if key is None else key
     # Python floats in `args` become arrays, so that new values reuse the compiled searches.
     args = jax.tree.map(lambda v: jnp.asarray(v, dtype) if isinstance(v, float) else v, args)
@@ -576,7 +608,8 @@ def check_properties(
     K = system.num_transitions
     k_t, k_x = jax.random.split(key)
     xs = _mode_samples(system, bounds, k_x, num_samples, dtype)
-    t_bounds = one_of("check_properties", t_bounds=t_bounds, t_window=t_window, default=(0.0, 0.0))
+    t_bounds = one_of("check_properties", t_bounds=t_bounds, t_window=shorthands.get("t_window"),
+                      default=(0.0, 0.0))
     lo, hi = float(t_bounds[0]), float(t_bounds[1])
     if hi < lo:
         raise ValueError(f"check_properties: t_bounds {t_bounds} must have t0 <= t1.")
@@ -589,8 +622,8 @@ def check_properties(
     names = system.mode_names
     if Q.rows:
         w = _search_batch(
-            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, tol, num_starts,
-            iterations,
+            system, Q.arrays(), ts, xs, args, jnp.asarray(margin, dtype), t_bounds, search.tol,
+            search.num_starts, search.iterations,
         )
         found, wt, wx = np.asarray(w.found), np.asarray(w.t), np.asarray(w.x)
     else:

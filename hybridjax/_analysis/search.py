@@ -20,11 +20,65 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, PRNGKeyArray
 
 from .._core import small_linalg as small_linalg
 from .._core.names import bounds_of, one_of
+
+
+class SearchOptions(eqx.Module):
+    r"""How the point searches of `check_properties` and `contact_system` refine their samples,
+    as `find_point`'s keywords of the same names: the `num_starts` samples of least violation
+    $v$ are refined by a dogleg trust-region least-squares solve of at most `iterations` steps
+    each, and a point counts as found where $v \le$ `tol`.
+
+    **Fields:** `num_starts` (default 8), `iterations` (64), `tol` (1e-14, for float64).
+
+    ```python
+    report = hj.check_properties(system, args, bounds=bounds,
+                                 search=hj.SearchOptions(num_starts=16, iterations=128))
+    ```
+    """
+
+    num_starts: int = eqx.field(static=True, default=8)  # static: how many starts (a shape)
+    iterations: int = eqx.field(static=True, default=64)  # static: a loop bound
+    tol: float = 1e-14
+
+    def __check_init__(self):
+        for name in ("num_starts", "iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"SearchOptions: {name} must be an int >= 1, got {value!r}.")
+        tol = self.tol
+        if isinstance(tol, bool) or not isinstance(tol, (int, float, np.floating)) or not tol >= 0:
+            raise ValueError(f"SearchOptions: tol must be a number >= 0, got {self.tol!r}.")
+
+
+# The keyword shorthands of `search=` (with `max_steps`, optimistix's name of `iterations`).
+SEARCH_SHORTHANDS = ("num_starts", "iterations", "max_steps", "tol")
+
+
+def search_options(owner: str, search: SearchOptions | None, shorthands: dict[str, Any]) -> SearchOptions:
+    """The `SearchOptions` of a call: `search` itself, or built from the keyword shorthands
+    `num_starts`, `iterations` (or `max_steps`), `tol`, taken out of `shorthands` (None counts
+    as not given). A shorthand beside `search`, or `iterations` beside `max_steps`, is a
+    `ValueError` naming both."""
+    given = {name: shorthands.pop(name) for name in SEARCH_SHORTHANDS if name in shorthands}
+    given = {name: value for name, value in given.items() if value is not None}
+    iterations = one_of(owner, iterations=given.pop("iterations", None),
+                        max_steps=given.pop("max_steps", None), default=None)
+    if iterations is not None:
+        given["iterations"] = iterations
+    if search is None:
+        return SearchOptions(**given)
+    if not isinstance(search, SearchOptions):
+        raise TypeError(f"{owner}: search must be an hj.SearchOptions, got {type(search).__name__}.")
+    if given:
+        raise ValueError(f"{owner}: search and {' and '.join(sorted(given))} are the same option (fields of "
+                         "hj.SearchOptions); pass one of them.")
+    return search
 
 
 class Witness(eqx.Module):
@@ -264,16 +318,17 @@ def search(
 def box_samples(
     key: PRNGKeyArray,
     bounds: tuple[Float[ArrayLike, " n"], Float[ArrayLike, " n"]] | None = None,
-    num: int | None = None,
+    num_samples: int | None = None,
     *positional: Any,
     **shorthands: Any,
-) -> Float[Array, "num n"]:
-    r"""`num` points drawn uniformly in the box `bounds = (lower, upper)` (componentwise):
+) -> Float[Array, "num_samples n"]:
+    r"""`num_samples` points drawn uniformly in the box `bounds = (lower, upper)`
+    (componentwise), from the `jax.random` key `key`:
     $x = \text{lower} + u\,(\text{upper} - \text{lower})$ with $u \sim U[0, 1)^n$.
 
-    **Keyword shorthands:** `lower=`, `upper=` build `bounds` (passing `bounds` too is a
-    `ValueError` naming both); the positional form `box_samples(key, lower, upper, num)` is the
-    same call.
+    **Keyword shorthands:** `lower=`, `upper=` build `bounds`; `num` is `num_samples`
+    (passing a name with its shorthand is a `ValueError` naming both). The positional form
+    `box_samples(key, lower, upper, num_samples)` is the same call.
 
     !!! Example
 
@@ -281,18 +336,19 @@ def box_samples(
         xs = hj.box_samples(jax.random.key(0), (-2.0 * jnp.ones(2), 2.0 * jnp.ones(2)), 64)
         ```
     """
-    if len(positional) == 1:  # box_samples(key, lower, upper, num)
-        if bounds is None or num is None or {"lower", "upper"} & set(shorthands):
-            raise TypeError("box_samples: pass box_samples(key, bounds, num) or "
-                            "box_samples(key, lower, upper, num).")
-        bounds, num = (bounds, num), positional[0]
+    if len(positional) == 1:  # box_samples(key, lower, upper, num_samples)
+        if bounds is None or num_samples is None or {"lower", "upper", "num"} & set(shorthands):
+            raise TypeError("box_samples: pass box_samples(key, bounds, num_samples) or "
+                            "box_samples(key, lower, upper, num_samples).")
+        bounds, num_samples = (bounds, num_samples), positional[0]
     elif positional:
         raise TypeError(f"box_samples() takes at most 4 positional arguments, got {3 + len(positional)}.")
     lower, upper = bounds_of("box_samples", bounds, shorthands)
+    num = one_of("box_samples", num_samples=num_samples, num=shorthands.pop("num", None), default=None)
     if shorthands:
         raise TypeError(f"box_samples() got an unexpected keyword argument {sorted(shorthands)[0]!r}.")
     if lower is None or upper is None or num is None:
-        raise TypeError("box_samples: needs bounds=(lower, upper) and num.")
+        raise TypeError("box_samples: needs bounds=(lower, upper) and num_samples.")
     lower, upper = jnp.asarray(lower), jnp.asarray(upper)
     dtype = jnp.result_type(lower.dtype, upper.dtype, float)
     u = jax.random.uniform(key, (num,) + lower.shape, dtype)

@@ -28,14 +28,33 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from scipy.stats import qmc
 
 from .._core.checks import check_int
+from .._core.names import one_of
 from .._definition.system import HybridSystem
 from .._solve.simulate_batch import simulate_batch
 
 SAMPLERS = ("sobol", "lhs", "random")
+
+
+def numpy_seed(owner: str, key: Any, seed: Any) -> int:
+    """The seed of numpy's and scipy's samplers: drawn from `key` (a `jax.random` key, typed or
+    a legacy uint32 pair) through `numpy.random.SeedSequence`, the same for the same key; an int
+    given as `key`, or as the shorthand `seed`, is the seed itself; 0 where neither is given.
+    Both at once is a `ValueError` naming them."""
+    key = one_of(owner, key=key, seed=seed, default=None)
+    if key is None:
+        return 0
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        check_int(owner, "seed" if seed is not None else "key", key, 0)
+        return int(key)
+    if isinstance(key, bool) or not hasattr(key, "dtype"):
+        raise TypeError(f"{owner}: key must be a jax.random key (or an int seed), got {key!r}.")
+    data = np.asarray(jax.random.key_data(key) if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key)
+                      else key)
+    return int(np.random.SeedSequence(data.astype(np.uint32).ravel().tolist()).generate_state(1)[0])
 
 
 class SensitivityOptions(eqx.Module):
@@ -44,26 +63,65 @@ class SensitivityOptions(eqx.Module):
     - `sampler`: `"sobol"` (scrambled Sobol' sequence, `scipy.stats.qmc.Sobol`; the number of
       base samples is rounded up to a power of 2), `"lhs"` (Latin hypercube,
       `scipy.stats.qmc.LatinHypercube`) or `"random"` (independent uniforms).
-    - `seed`: seeds the sampler, the Morris trajectories and the bootstrap.
+    - `key`: a `jax.random` key for the sampler, the Morris trajectories and the bootstrap
+      (numpy and scipy draw them, seeded by the `seed` field the key gives); default: seed 0.
     - `chunk_size`: rows per model call (one compiled program for all; the last chunk padded).
     - `n_bootstrap`, `confidence`: bootstrap resamples and the level of the percentile
       intervals of the Sobol' indices.
+
+    **Keyword shorthand:** `seed=s` (an int >= 0, also accepted as `key`) sets the seed itself.
+
+    ```python
+    options = hj.SensitivityOptions(key=jax.random.key(1), chunk_size=50_000)
+    ```
     """
 
     # Static: a name, and ints read by numpy/scipy (seed, array sizes).
-    sampler: str = eqx.field(static=True, default="sobol")
-    seed: int = eqx.field(static=True, default=0)
-    chunk_size: int = eqx.field(static=True, default=100_000)
-    n_bootstrap: int = eqx.field(static=True, default=200)
-    confidence: float = 0.95
+    sampler: str = eqx.field(static=True)
+    seed: int = eqx.field(static=True)  # the numpy/scipy seed `key` gives
+    chunk_size: int = eqx.field(static=True)
+    n_bootstrap: int = eqx.field(static=True)
+    confidence: float
+
+    def __init__(
+        self,
+        sampler: str = "sobol",
+        key: PRNGKeyArray | int | None = None,
+        chunk_size: int = 100_000,
+        n_bootstrap: int = 200,
+        confidence: float = 0.95,
+        **shorthands,
+    ):
+        unknown = sorted(set(shorthands) - {"seed"})
+        if unknown:
+            raise TypeError(f"SensitivityOptions() got an unexpected keyword argument {unknown[0]!r}.")
+        self.sampler = sampler
+        self.seed = numpy_seed("SensitivityOptions", key, shorthands.get("seed"))
+        self.chunk_size = chunk_size
+        self.n_bootstrap = n_bootstrap
+        self.confidence = confidence
 
     def __check_init__(self):
         if self.sampler not in SAMPLERS:
             raise ValueError(f"SensitivityOptions: sampler must be one of {SAMPLERS}, got {self.sampler!r}.")
-        for name, low in (("seed", 0), ("chunk_size", 1), ("n_bootstrap", 0)):
+        for name, low in (("chunk_size", 1), ("n_bootstrap", 0)):
             check_int("SensitivityOptions", name, getattr(self, name), low)
         if not 0 < self.confidence < 1:
             raise ValueError(f"SensitivityOptions: confidence must be in (0, 1), got {self.confidence!r}.")
+
+
+def _num_samples(owner: str, num_samples: Any, shorthands: dict[str, Any], shorthand: str,
+                 allowed: tuple[str, ...] = ()) -> int:
+    """`num_samples` or its `shorthand` (`n`, `num`) from `shorthands`; a `TypeError` for an
+    unknown keyword or neither given, a `ValueError` for both or fewer than 1."""
+    unknown = sorted(set(shorthands) - {shorthand, *allowed})
+    if unknown:
+        raise TypeError(f"{owner}() got an unexpected keyword argument {unknown[0]!r}.")
+    value = one_of(owner, num_samples=num_samples, **{shorthand: shorthands.get(shorthand)}, default=None)
+    if value is None:
+        raise TypeError(f"{owner}() missing the number of samples num_samples.")
+    check_int(owner, "num_samples", value, 1)
+    return int(value)
 
 
 def _bounds(bounds) -> np.ndarray:
@@ -76,10 +134,25 @@ def _bounds(bounds) -> np.ndarray:
 
 
 def sample(
-    bounds: Float[ArrayLike, "d 2"], n: int, sampler: str = "sobol", seed: int = 0
-) -> Float[np.ndarray, "n d"]:
-    """`n` points uniform on the box `bounds` (rows [low, high]), drawn by `sampler`
-    (`"sobol"`, scrambled, n rounded up to a power of 2; `"lhs"`; `"random"`), seeded."""
+    bounds: Float[ArrayLike, "d 2"],
+    num_samples: int | None = None,
+    sampler: str = "sobol",
+    key: PRNGKeyArray | int | None = None,
+    **shorthands,
+) -> Float[np.ndarray, "num_samples d"]:
+    """`num_samples` points uniform on the box `bounds` (rows [low, high]), drawn by `sampler`
+    (`"sobol"`, scrambled, `num_samples` rounded up to a power of 2; `"lhs"`; `"random"`),
+    seeded by `key` (a `jax.random` key; the same key, the same points; an int is numpy's seed
+    itself; default seed 0).
+
+    **Keyword shorthands:** `n`: `num_samples`; `seed`: an int `key`.
+
+    ```python
+    theta = hj.sample([[0.5, 1.5], [5.0, 15.0]], num_samples=1024, key=jax.random.key(0))
+    ```
+    """
+    n = _num_samples("sample", num_samples, shorthands, "n", allowed=("seed",))
+    seed = numpy_seed("sample", key, shorthands.get("seed"))
     b = _bounds(bounds)
     d = b.shape[0]
     if sampler == "sobol":
@@ -243,23 +316,27 @@ def saltelli_estimates(fA: np.ndarray, fB: np.ndarray, fAB: np.ndarray) -> tuple
 def sobol_indices(
     model: Callable[[Array], Array],
     bounds: Float[ArrayLike, "d 2"],
-    n: int,
+    num_samples: int | None = None,
     *,
     names: tuple[str, ...] | None = None,
     options: SensitivityOptions = SensitivityOptions(),
+    **shorthands,
 ) -> SobolResult:
     r"""First-order and total Sobol' indices of `model`'s outputs, Saltelli's scheme.
 
     S_i = Var(E[Y | theta_i]) / Var(Y), S_Ti = E[Var(Y | theta_{~i})] / Var(Y). Two independent
-    samples A, B of `n` rows (rounded up to a power of 2 with the Sobol' sampler; one
+    samples A, B of n = `num_samples` rows (rounded up to a power of 2 with the Sobol' sampler; one
     2d-dimensional design split in two) and the d matrices
     A_B^i (A with column i from B): n (d + 2) evaluations, in chunks. Estimators: S_i =
     mean((f(B) - f0) (f(A_B^i) - f(A))) / V, S_Ti = mean((f(A) - f(A_B^i))^2) / (2 V) (Saltelli et
     al. 2010). Intervals: percentiles of the estimates over `n_bootstrap` resamples of the n
     rows. Valid for discontinuous and discrete outputs (event counts, final modes).
+
+    **Keyword shorthand:** `n`: `num_samples` (also as the third positional argument).
     """
     if not isinstance(options, SensitivityOptions):
         raise TypeError(f"options must be a SensitivityOptions, got {type(options).__name__}.")
+    n = _num_samples("sobol_indices", num_samples, shorthands, "n")
     b = _bounds(bounds)
     d = b.shape[0]
     both = sample(np.concatenate([b, b]), n, options.sampler, options.seed)
@@ -410,20 +487,23 @@ def _with_gradients(model):
 def dgsm(
     model: Callable[[Array], Array],
     bounds: Float[ArrayLike, "d 2"],
-    n: int,
+    num_samples: int | None = None,
     *,
     names: tuple[str, ...] | None = None,
     options: SensitivityOptions = SensitivityOptions(),
+    **shorthands,
 ) -> DGSMResult:
     r"""Derivative-based global sensitivity measures nu_i = E[(df/dtheta_i)^2], from the exact
     derivatives of `model` (reverse mode through the executions: event times are
-    differentiated by the implicit function theorem).
+    differentiated by the implicit function theorem), at `num_samples` points drawn by
+    `options` (shorthand: `n`, also as the third positional argument).
 
     Each row's output depends on its own parameters only, so one gradient of the sum of a
     chunk's outputs gives every row's gradient. A discrete output (an event count) has zero
     derivative almost everywhere: its nu is 0 whatever its Sobol' indices; use
     `sobol_indices` for it.
     """
+    n = _num_samples("dgsm", num_samples, shorthands, "n")
     b = _bounds(bounds)
     d = b.shape[0]
     theta = sample(b, n, options.sampler, options.seed)

@@ -47,7 +47,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import PRNGKeyArray
 
-from .._analysis.search import box_samples
+from .._analysis.search import SearchOptions, box_samples
 from .._core import small_linalg as small_linalg
 from .._definition.indexed import ModeIndexed
 from .._definition.kernels import select_by_mode
@@ -626,9 +626,9 @@ def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
     return _FQuery(**{k: jnp.asarray(v, dt) for k, v in fields.items()})
 
 
-def _run(scene, queries, args_batch, samples, margin, tol, num_starts):
+def _run(scene, queries, args_batch, samples, margin, search):
     eq, ineq = _friction_queries(scene, margin)
-    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
+    return run_search(eq, ineq, queries, args_batch, samples, search)
 
 
 # ----------------------------------------------------------------------------- the system
@@ -683,14 +683,13 @@ def friction_system(
     *,
     args_values: Sequence | None = None,
     num_samples: int = 512,
-    num_starts: int = 8,
     margin: float = 1e-3,
-    tol: float = 1e-14,
     key: PRNGKeyArray | None = None,
     redundant: str = "error",
     max_modes: int = 64,
     relabels: Sequence = (),
     form: str = "mask",
+    search: SearchOptions = SearchOptions(),
 ) -> FrictionSystem:
     """`contact_system` for a scene with frictional contacts (see the module notes)."""
     if relabels:
@@ -720,13 +719,13 @@ def friction_system(
     pts = box_samples(point_search_key(key, None), *sample_box(scene, dtype), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
-    def search(qs):
-        return _run(scene, qs, args_batch, samples, margin, tol, num_starts)
+    def witnesses(qs):
+        return _run(scene, qs, args_batch, samples, margin, search)
 
     initial_states = list(dict.fromkeys(parse_state(scene, s) for s in initial))
     if not initial_states:
         raise ValueError("contact_system: give at least one initial contact set.")
-    w = search([_query(scene, S, flowing=0.0) for S in initial_states])
+    w = witnesses([_query(scene, S, flowing=0.0) for S in initial_states])
     for i, S in enumerate(initial_states):
         if not w.found[i].any():
             raise ValueError(
@@ -801,7 +800,7 @@ def friction_system(
         frontier = []
         if not qs:
             break
-        w = search(qs)
+        w = witnesses(qs)
         for i, (S, kind, j, detail, T) in enumerate(keys):
             found_v = w.found[i]
             if found_v.any():

@@ -55,7 +55,7 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._analysis.search import box_samples, find_point
+from .._analysis.search import SearchOptions, box_samples, find_point, search_options
 from .._core import small_linalg as small_linalg
 from .._core.names import one_of
 from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
@@ -663,10 +663,10 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
     return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
 
 
-def _run_queries(scene, queries, args_batch, samples, margin, least_norm, tol, num_starts):
+def _run_queries(scene, queries, args_batch, samples, margin, least_norm, search):
     """find_point for every (query, args value): Witness with leading axes (Q, V)."""
     eq, ineq = _query_functions(scene, margin, least_norm)
-    return run_search(eq, ineq, queries, args_batch, samples, tol, num_starts)
+    return run_search(eq, ineq, queries, args_batch, samples, search)
 
 
 # Queries per call of the compiled search: every call has this many (the last one padded), so a
@@ -678,7 +678,7 @@ SEARCH_CHUNK = 8
 _SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
-def run_search(eq, ineq, queries, args_batch, samples, tol, num_starts):
+def run_search(eq, ineq, queries, args_batch, samples, search: SearchOptions):
     """`_search` over `queries` in chunks of `SEARCH_CHUNK`: Witness with leading axes (Q, V)."""
     ts, xs = samples
     count = len(queries)
@@ -689,19 +689,19 @@ def run_search(eq, ineq, queries, args_batch, samples, tol, num_starts):
         stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries[start : start + SEARCH_CHUNK])
         operands = (ts, xs, stacked, args_batch)
         shapes = tuple((a.shape, a.dtype) for a in jtu.tree_leaves(operands))
-        run = _compiled_search(eq, ineq, tol, num_starts, jtu.tree_structure(operands), shapes, operands)
+        run = _compiled_search(eq, ineq, search, jtu.tree_structure(operands), shapes, operands)
         outs.append(run(*operands))
     return jtu.tree_map(lambda *a: np.concatenate([np.asarray(b) for b in a])[:count], *outs)
 
 
-def _compiled_search(eq, ineq, tol, num_starts, structure, shapes, operands):
+def _compiled_search(eq, ineq, search, structure, shapes, operands):
     """The search's executable for these constraint functions and operand shapes: compiled on
     first use (`_SEARCH_COMPILE`), then reused for every level and `args` value of the scene."""
-    key = (eq, ineq, tol, num_starts, structure, shapes)
+    key = (eq, ineq, search, structure, shapes)
     if key not in _SEARCHES:
         if len(_SEARCHES) >= 8:
             _SEARCHES.pop(next(iter(_SEARCHES)))
-        fn = jax.jit(functools.partial(_search, eq, ineq, tol=tol, num_starts=num_starts))
+        fn = jax.jit(functools.partial(_search, eq, ineq, search=search))
         _SEARCHES[key] = fn.trace(*operands).lower().compile(_SEARCH_COMPILE)
     return _SEARCHES[key]
 
@@ -709,9 +709,10 @@ def _compiled_search(eq, ineq, tol, num_starts, structure, shapes, operands):
 _SEARCHES: dict = {}
 
 
-def _search(eq, ineq, ts, xs, queries, args_batch, *, tol, num_starts):
+def _search(eq, ineq, ts, xs, queries, args_batch, *, search):
     def one(Q, args):
-        return find_point(eq, ineq, ts, xs, (args, Q), tol=tol, num_starts=num_starts)
+        return find_point(eq, ineq, ts, xs, (args, Q), tol=search.tol, num_starts=search.num_starts,
+                          iterations=search.iterations)
 
     # The index makes the inner vmap well defined for `args` without arrays (None).
     index, args_batch = args_batch
@@ -877,15 +878,14 @@ def contact_system(
     *,
     args_values: Sequence | None = None,
     num_samples: int = 512,
-    num_starts: int = 8,
     margin: float = 1e-3,
-    tol: float = 1e-14,
     key: PRNGKeyArray | None = None,
     redundant: str = "error",
     form: str = "mask",
     max_modes: int = 64,
     relabels: Sequence[Relabel] = (),
-    seed: int | None = None,
+    search: SearchOptions | None = None,
+    **shorthands,
 ) -> AbstractContactSystem:
     r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
 
@@ -905,9 +905,8 @@ def contact_system(
       or samples of its range) to build over: a transition found for any of them is kept, and
       the repr says for which. A batch or a derivative across values that change the modes
       built needs a system built over all of them.
-    - `num_samples`, `num_starts`, `tol`, `key`: the point search (samples drawn in the
-      scene's `bounds` x `t_bounds`; violation accepted as zero; `key` a `jax.random` key,
-      default `jax.random.key(0)`). Shorthand: `seed=s` for `key=jax.random.key(s)`.
+    - `num_samples`, `key`: the point search's samples, drawn in the scene's `bounds` x
+      `t_bounds` (`key` a `jax.random` key, default `jax.random.key(0)`).
     - `margin`: the least approach speed of an impact and the least pulling force of a
       lift-off that a witness must show, in the scene's units.
     - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
@@ -922,6 +921,12 @@ def contact_system(
     - `max_modes`: a build that would exceed this many modes stops with an error.
     - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
       set goes to its `target` set, the state relabelled).
+    - `search`: an `hj.SearchOptions` (`num_starts`, `iterations`, `tol`: how the best samples
+      are refined, the violation accepted as zero), as in `find_point`.
+
+    **Keyword shorthands** (passing one with the name it stands for is a `ValueError`):
+    `seed=s` for `key=jax.random.key(s)`; `num_starts`, `iterations` (or `max_steps`), `tol`
+    for `search=hj.SearchOptions(...)` with them.
 
     !!! Example
 
@@ -932,7 +937,11 @@ def contact_system(
         system.contact_forces(sol)
         ```
     """
-    key = point_search_key(key, seed)
+    search = search_options("contact_system", search, shorthands)
+    unknown = sorted(set(shorthands) - {"seed"})
+    if unknown:
+        raise TypeError(f"contact_system() got an unexpected keyword argument {unknown[0]!r}.")
+    key = point_search_key(key, shorthands.get("seed"))
     if redundant not in ("error", "least_norm"):
         raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
     if form not in ("branch", "mask"):
@@ -941,8 +950,8 @@ def contact_system(
         from .._scenes.friction import friction_system
 
         return friction_system(
-            scene, initial, args, args_values=args_values, num_samples=num_samples, num_starts=num_starts,
-            margin=margin, tol=tol, key=key, redundant=redundant, max_modes=max_modes, relabels=relabels,
+            scene, initial, args, args_values=args_values, num_samples=num_samples, search=search,
+            margin=margin, key=key, redundant=redundant, max_modes=max_modes, relabels=relabels,
             form=form,
         )  # fmt: skip
     values = list(args_values) if args_values is not None else [args]
@@ -975,15 +984,15 @@ def contact_system(
             jnp.asarray(flowing, dtype),
         )
 
-    def search(qs):
-        return _run_queries(scene, qs, args_batch, samples, margin, least_norm, tol, num_starts)
+    def witnesses(qs):
+        return _run_queries(scene, qs, args_batch, samples, margin, least_norm, search)
 
     # Initial sets: a consistent state (held gaps and rates 0, the others open), where the held
     # constraints are independent (or `redundant="least_norm"`).
     initial_sets = list(dict.fromkeys(_as_set(scene, s) for s in initial))
     if not initial_sets:
         raise ValueError("contact_system: give at least one initial contact set.")
-    w = search([query(A) for A in initial_sets])
+    w = witnesses([query(A) for A in initial_sets])
     built: dict[frozenset, bool] = {}  # set -> least-norm
     report: list[str] = []
     for i, A in enumerate(initial_sets):
@@ -1041,7 +1050,7 @@ def contact_system(
         frontier = []
         if not qs:
             break
-        w = search(qs)
+        w = witnesses(qs)
         for i, (A, kind, j, c, T) in enumerate(keys):
             found_v = w.found[i]
             if found_v.any():

@@ -1,6 +1,6 @@
 """`Simulator`: how an execution is computed (solver, controller, saving, adjoint, engine,
-options), as one object that the functions which simulate on a user's behalf (shooting, property
-checks, Monte Carlo, scenes) take in place of `simulate`'s keywords."""
+options), as one object that the functions which simulate on a user's behalf (shooting, iLQR,
+property checks, Monte Carlo) take in place of `simulate`'s keywords."""
 
 from typing import Any
 
@@ -26,7 +26,7 @@ class Simulator(eqx.Module):
 
     `hj.Simulator(...)(system, x0, mode0, t0, t1, args)` is
     `hj.simulate(system, x0, mode0, t0, t1, args, solver=..., ..., options=...)`, and
-    `.batch(...)` is `hj.simulate_batch` with the same settings. `hj.Shooting`,
+    `.batch(...)` is `hj.simulate_batch` with the same settings. `hj.Shooting`, `hj.HybridILQR`,
     `hj.check_properties` and `hj.monte_carlo` take one as `simulator=`; their keywords
     `solver`, `stepsize_controller`, `saveat`, `max_epochs`, `max_steps`, ... are shorthands
     that build it.
