@@ -138,10 +138,10 @@ def test_bad_input_is_named():
 def test_box_samples_takes_num_samples():
     # num_samples (num a shorthand): N points of the box [-2, 2]^2, the same from one key
     lo, hi = -2.0 * jnp.ones(2), 2.0 * jnp.ones(2)
-    named = hj.box_samples(jax.random.key(0), lo, hi, num_samples=N)
-    np.testing.assert_array_equal(hj.box_samples(jax.random.key(0), lo, hi, num=N), named)
+    named = hj.box_samples(jax.random.key(0), (lo, hi), num_samples=N)
+    np.testing.assert_array_equal(hj.box_samples(jax.random.key(0), (lo, hi), num=N), named)
     np.testing.assert_array_equal(XS, named)
     assert named.shape == (N, 2) and bool(jnp.all((named >= -2.0) & (named <= 2.0)))
     with pytest.raises(ValueError, match="num_samples and num are the same option"):
-        hj.box_samples(jax.random.key(0), lo, hi, N, num=N)
+        hj.box_samples(jax.random.key(0), (lo, hi), N, num=N)
 

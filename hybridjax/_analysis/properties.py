@@ -390,7 +390,7 @@ def _mode_samples(system, bounds, key, num, dtype):
             xs = jnp.asarray(spec(k, num), dtype)
         else:
             lo, hi = (jnp.broadcast_to(jnp.asarray(v, dtype), (m.dim,)) for v in spec)
-            xs = box_samples(k, lo, hi, num)
+            xs = box_samples(k, (lo, hi), num)
         if xs.shape != (num, m.dim):
             raise ValueError(
                 f"check_properties: samples of mode '{m.name}' have shape {xs.shape}; "

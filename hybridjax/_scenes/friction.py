@@ -716,7 +716,7 @@ def friction_system(
         jnp.arange(len(values)),
         jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
     )
-    pts = box_samples(point_search_key(key, None), *sample_box(scene, dtype), num_samples)
+    pts = box_samples(point_search_key(key, None), tuple(sample_box(scene, dtype)), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
     def witnesses(qs):

@@ -968,7 +968,7 @@ def contact_system(
         jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
     )
 
-    pts = box_samples(key, *sample_box(scene, dtype), num_samples)
+    pts = box_samples(key, tuple(sample_box(scene, dtype)), num_samples)
     samples = (pts[:, -1], pts[:, :-1])
 
     def onehot(idx):
