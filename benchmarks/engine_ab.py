@@ -18,6 +18,7 @@ and `_step`, or, in a tree with the flat layout, `_loop`, `_batched`, `_events`,
 
     python benchmarks/engine_ab.py --a /path/to/old/tree --b .   # writes results/engine_ab.json
     python benchmarks/engine_ab.py --a /path/to/old/tree --b . --entries "simulate,grad vmap(simulate)"
+    python benchmarks/engine_ab.py --a /path/to/old/tree --b . --problems vdp_relay   # one problem
     python benchmarks/engine_ab.py --a /path/to/old/tree --b . --same-process   # both trees in one process
 
 With `--same-process` both trees are imported into one Python process, under the names
@@ -264,6 +265,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--n", type=int, default=100)
     ap.add_argument("--entries", default=",".join(ENTRIES), help="comma-separated, of " + ", ".join(ENTRIES))
+    ap.add_argument("--problems", default=",".join(PROBLEMS), help="comma-separated, of " + ", ".join(PROBLEMS))
     ap.add_argument(
         "--env-b",
         action="append",
@@ -285,6 +287,8 @@ def main():
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ab.json"))
     a = ap.parse_args()
+    global PROBLEMS
+    PROBLEMS = tuple(a.problems.split(","))
     if a.one:
         print(json.dumps(one(a.n, a.repeat, a.entries.split(","))))
         return
@@ -313,6 +317,8 @@ def main():
                 str(a.repeat),
                 "--entries",
                 a.entries,
+                "--problems",
+                a.problems,
             ]
             loads.append(os.getloadavg()[0])
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=root)
