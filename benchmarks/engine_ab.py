@@ -258,6 +258,7 @@ def summary(a, roots, runs, loads) -> dict:
 
 
 def main():
+    global PROBLEMS
     ap = argparse.ArgumentParser()
     ap.add_argument("--a", required=True, help="source tree of version A (the reference)")
     ap.add_argument("--b", default=str(HERE.parent), help="source tree of version B")
@@ -287,7 +288,6 @@ def main():
     ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(HERE / "results" / "engine_ab.json"))
     a = ap.parse_args()
-    global PROBLEMS
     PROBLEMS = tuple(a.problems.split(","))
     if a.one:
         print(json.dumps(one(a.n, a.repeat, a.entries.split(","))))
