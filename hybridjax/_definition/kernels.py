@@ -16,6 +16,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax import lax
 
 from .._definition.system import HybridSystem
@@ -50,6 +51,43 @@ def select_by_mode(mode, rows, size: int, fill, dtype) -> jax.Array:
                 v = jnp.where(mode == m, row[s], v)
         out.append(v)
     return jnp.stack(out) if out else jnp.zeros((0,), dtype)
+
+
+def row_by_mode(mode, table, dtype) -> jax.Array:
+    """Row `mode` of the constant (modes, m) `table`: $\sum_I [I = \text{mode}]\,T_I$ as one
+    select over the table and one sum, whatever the number of modes (a chain of one select per
+    mode made a scene's program grow with its modes). No gather by a traced index (slow on
+    XLA:CPU under `jax.vmap`); exact, the sum adding zeros to one entry."""
+    table = jnp.asarray(table, dtype)
+    if table.shape[0] == 1:
+        return table[0]
+    hit = (mode == jnp.arange(table.shape[0]))[:, None]
+    return jnp.sum(jnp.where(hit, table, jnp.zeros((), dtype)), axis=0)
+
+
+def pick_values(values, index, fill) -> jax.Array:
+    """(S,): entry s is `values[index[s]]`, `fill` where `index[s] < 0`; `values` (V,) traced,
+    `index` (S,) an integer array (traced or constant). One select of the (S, V) one-hot pattern
+    and one sum: a NaN or inf in an entry not picked does not reach the result or its gradient."""
+    V = values.shape[0]
+    if index.shape[0] == 0 or V == 0:
+        return jnp.full(index.shape, fill, values.dtype)
+    hit = jnp.asarray(index)[:, None] == jnp.arange(V)[None, :]
+    picked = jnp.sum(jnp.where(hit, values[None, :], jnp.zeros((), values.dtype)), axis=1)
+    return jnp.where(jnp.asarray(index) >= 0, picked, jnp.asarray(fill, values.dtype))
+
+
+def select_slots(mode, values, index, offset, fill) -> jax.Array:
+    """(S,): slot s of `mode` is `values[index[mode, s]] + offset[mode, s]`, `fill` where
+    `index[mode, s] < 0` (an unused slot); `index`, `offset` constant (modes, S) tables. The
+    program has a fixed number of operations, not one per mode and slot."""
+    index = np.asarray(index, dtype=np.int64).reshape(len(index), -1)
+    if index.shape[1] == 0:
+        return jnp.zeros((0,), values.dtype)
+    idx = row_by_mode(mode, index, jnp.int32) if index.shape[0] > 1 else jnp.asarray(index[0], jnp.int32)
+    off = row_by_mode(mode, np.asarray(offset, dtype=float).reshape(index.shape), values.dtype)
+    picked = pick_values(values, idx, fill)
+    return jnp.where(idx >= 0, picked + off, picked)
 
 
 def dispatch(index, branches: list[Callable], *operands):
@@ -195,9 +233,10 @@ class Kernels:
     def from_slots(self, mode, slots, fill) -> jax.Array:
         """(K + W,): the inverse of `to_slots`, watched function w reading its slot of `slots`
         where it belongs to `mode` and `fill` elsewhere."""
-        out = [jnp.where(mode == src, slots[self.watch_slot[w]], fill)
-               for w, (src, _) in enumerate(self.watch)]
-        return jnp.stack(out) if out else jnp.zeros((0,), slots.dtype)
+        if self.num_watch == 0:
+            return jnp.zeros((0,), slots.dtype)
+        mine = pick_values(slots, np.asarray(self.watch_slot), fill)
+        return jnp.where(self.outgoing_mask(mode), mine, jnp.asarray(fill, slots.dtype))
 
     def _slots(self, mode, values, fill, dtype) -> jax.Array:
         """Slot s of `mode`: values[mode_watch[mode][s]], `fill` where `mode` has fewer;

@@ -13,14 +13,13 @@ one solve with all $K$ constraints, not of one per mode built.
 """
 
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
 from .._definition.indexed import ModeIndexed
-from .._definition.kernels import dispatch, select_by_mode
+from .._definition.kernels import dispatch, pick_values, row_by_mode, select_slots
 from .mechanics import (
     impact_gaps,
     impact_map,
@@ -149,42 +148,54 @@ class ContactEvaluation(ModeIndexed):
         kin = self._kinematics(t, y, args)
         _, lam = self._acceleration(mode, kin, y.dtype)
         gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
-        # Every impact's choice of the current mode in one vmapped solve, and only where one of
-        # its selection guards is at or below zero, where it is read (`selection_guard`):
-        # under `jax.vmap`, where one execution needs it.
+        # The impacts' choices of the current mode, only of the constraints whose selection
+        # guards are read, those at or below zero (`selection_guard`).
         held, present, gap_rows, involved = self._choice_tables()
+        picks = jnp.full((K,), -1, jnp.int32)
         if present.any():
             has = _by_mode(mode, present.any(axis=2).astype(float), y.dtype) > 0
-            need = jnp.any(has & (gaps <= 0))
             kin_sg, args_sg = lax.stop_gradient((kin, args))
-            picks = lax.cond(eqxi.unvmap_any(need), lambda: self._choices(mode, kin_sg, args_sg, y.dtype),
-                             lambda: jnp.full((K,), -1, jnp.int32))
-        values = [gaps, lam]
-        base = K + lam.shape[0]
-        source, offset = [], []
-        for specs in self.slots:
-            src_row, off_row = [], []
-            for spec in specs:
-                if spec.kind == GAP:
-                    src_row.append(spec.index)
+            picks = self._choices(mode, kin_sg, args_sg, has & (gaps <= 0), y.dtype)
+        # Slot s of `mode` from constant tables (`_slot_tables`): one pick from
+        # [gaps, forces, 0], plus an offset; a selection guard on its picked gap.
+        index, offset, selected, hit, chosen = self._slot_tables()
+        if index.shape[1] == 0:
+            return jnp.zeros((0,), y.dtype)
+        values = jnp.concatenate([gaps, lam, jnp.zeros((1,), y.dtype)])
+        out = select_slots(mode, values, index, offset, 1.0)
+        if not selected.any():
+            return out
+        # The impact's choice `picks[hit]` (-1: none solves it) against the candidates the slot
+        # takes, a (S, C + 1) pattern whose column c + 1 is candidate c.
+        pick = pick_values(picks, row_by_mode(mode, hit, jnp.int32), -1)
+        takes = row_by_mode(mode, chosen.reshape(len(chosen), -1), y.dtype).reshape(chosen.shape[1:]) > 0
+        taken = jnp.any(takes & (pick[:, None] + 1 == jnp.arange(chosen.shape[2])[None, :]), axis=1)
+        return jnp.where(row_by_mode(mode, selected, y.dtype) > 0, selection_guard(out, taken), out)
+
+    def _slot_tables(self):
+        """Constant (modes, S) tables of the slots: the index into [gaps (K), row forces, 0]
+        (-1 unused), the offset, whether the slot is a selection guard, the impacting constraint
+        it reads the choice of, and (modes, S, C + 1) the candidates it takes (column c + 1 for
+        candidate c, column 0 for "none solves it")."""
+        K, R = len(self.scene.constraints), len(self._rows()[0])
+        M, S = len(self.slots), max(map(len, self.slots), default=0)
+        C = max((len(sp.choice.held) for specs in self.slots for sp in specs if sp.kind == SELECTED),
+                default=0)
+        index, offset = np.full((M, S), -1), np.zeros((M, S))
+        selected, hit, chosen = np.zeros((M, S)), np.zeros((M, S), int), np.zeros((M, S, C + 1))
+        for m, specs in enumerate(self.slots):
+            for s, spec in enumerate(specs):
+                offset[m, s] = spec.offset
+                if spec.kind in (GAP, SELECTED):
+                    index[m, s] = spec.index
                 elif spec.kind == FORCE:
-                    src_row.append(K + spec.index)
-                elif spec.kind == SELECTED:
-                    pick = picks[spec.choice.hit]
-                    taken = jnp.any(jnp.stack([pick == c for c in spec.chosen] + [False]))
-                    values.append(selection_guard(gaps[spec.index], taken)[None])
-                    src_row.append(base)
-                    base += 1
-                else:  # CONSTANT: `offset` on the zero at the end of `values`
-                    src_row.append(-1)
-                off_row.append(spec.offset)
-            source.append(src_row)
-            offset.append(off_row)
-        values = jnp.concatenate([*values, jnp.zeros((1,), y.dtype)])
-        # Slot s of `mode`: values[source] + offset; an unused slot reads 1.
-        rows = [[values[i] + o for i, o in zip(src, off, strict=True)]
-                for src, off in zip(source, offset, strict=True)]
-        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+                    index[m, s] = K + spec.index
+                else:  # CONSTANT: `offset` on the zero at the end
+                    index[m, s] = K + R
+                if spec.kind == SELECTED:
+                    selected[m, s], hit[m, s] = 1.0, spec.choice.hit
+                    chosen[m, s, [c + 1 for c in spec.chosen]] = 1.0
+        return index, offset, selected, hit, chosen
 
     def _choice_tables(self):
         """The release candidates of every (mode, impacting constraint) that a selection guard
@@ -204,24 +215,32 @@ class ContactEvaluation(ModeIndexed):
             involved[m, k, list(ch.involved)] = True
         return held, present, gap_rows, involved
 
-    def _choices(self, mode, kin, args, dtype):
-        """`release_choice` of the impact of each constraint k in `mode` at the state of `kin`
-        (given without gradients): (K,) candidate indices (-1 where none solves it, or none is read).
-        The K impacts and their candidates are one vmapped solve on the scene's rows."""
+    def _choices(self, mode, kin, args, need, dtype):
+        """`release_choice` of the impact of each constraint k in `mode` with `need[k]`, at the
+        state of `kin` (given without gradients): (K,) candidate indices (-1 where none solves it,
+        or it is not needed). One constraint at a time, its candidates one vmapped solve: at an
+        impact one gap or two are closed, so a loop over those needed costs one or two solves
+        where a solve of every constraint costs K (under `jax.vmap`, the loop runs as often as
+        the execution that needs the most)."""
         K, R = len(self.scene.constraints), len(self._rows()[0])
         held, present, gap_rows, involved = self._choice_tables()
         C = held.shape[2]
-        held = _by_mode(mode, held.reshape(held.shape[0], -1), dtype).reshape(K, C, R)
-        present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C) > 0
-        gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R) > 0
-        involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R) > 0
+        held = _by_mode(mode, held.reshape(held.shape[0], -1), dtype).reshape(K, C * R)
+        present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C)
+        gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R)
+        involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R)
         e = self._restitution(args, dtype)
-        hit = jnp.eye(K, R, dtype=dtype)  # constraint k's restitution acts on its gap row alone
 
-        def one(k_hit, h, p, g, i):
-            return release_choice(kin, h, k_hit * e, i, g, self.least_norm, present=p)
+        def body(carry):
+            picks, left = carry
+            k = jnp.argmax(left)
+            h, p, g, i = (row_by_mode(k, table, dtype) for table in (held, present, gap_rows, involved))
+            hit = (jnp.arange(R) == k).astype(dtype)  # constraint k's restitution on its gap row alone
+            pick = release_choice(kin, h.reshape(C, R), hit * e, i > 0, g > 0, self.least_norm, present=p > 0)
+            mine = jnp.arange(K) == k
+            return jnp.where(mine, pick, picks), left & ~mine
 
-        return jax.vmap(one)(hit, held, present, gap_rows, involved)
+        return lax.while_loop(lambda c: jnp.any(c[1]), body, (jnp.full((K,), -1, jnp.int32), need))[0]
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n = self.scene.dim
@@ -242,9 +261,5 @@ class ContactEvaluation(ModeIndexed):
 
 
 def _by_mode(mode, table, dtype) -> jax.Array:
-    """Row `mode` of the constant (modes, m) `table`, each entry selected elementwise by `mode`
-    (no gather by a traced index)."""
-    row = jnp.zeros(table.shape[1], dtype)
-    for m in range(table.shape[0]):
-        row = jnp.where(mode == m, jnp.asarray(table[m], dtype), row)
-    return row
+    """Row `mode` of the constant (modes, m) `table` (`kernels.row_by_mode`)."""
+    return row_by_mode(mode, np.asarray(table), dtype)
