@@ -17,6 +17,7 @@ from hybridjax import _rules as R
 from hybridjax import examples
 from hybridjax._core.status import Status
 from hybridjax._definition.kernels import GuardJets, Kernels
+from hybridjax._rules.locate import BracketedNewton
 from hybridjax._step.runge_kutta import (
     PIDState,
     UnrolledERK,
@@ -319,6 +320,33 @@ def test_first_event_and_the_simultaneity_rule():
     # no event: the step's end
     ev = _first_event_of(0.0, has=[False])
     assert float(ev.t_star) == 2.0 and int(ev.index) == 0 and not bool(ev.simultaneous)
+
+
+class _CountingLocator(BracketedNewton):
+    """The default locator, counting its root searches as they run."""
+
+    def root(self, f, a, b, tol):
+        t = super().root(f, a, b, tol)
+        jax.debug.callback(lambda _: _ROOT_SEARCHES.append(1), t)
+        return t
+
+
+_ROOT_SEARCHES: list = []
+
+
+def test_first_event_searches_only_the_brackets_that_can_hold_it():
+    # Guards 1 + o - x cross at 1 + o; brackets start at `a`. The earliest crossing is guard 1's
+    # at 1; guard 2 crosses 1e-14 later (simultaneous, within the event tolerance), so guard 1
+    # fires (listing order). Guard 3's bracket starts at 1.05 and guard 0's at 1.2, after the
+    # earliest crossing: neither can be first or simultaneous, and neither is searched.
+    o = jnp.asarray([0.3, 0.0, 1e-14, 0.05])
+    br = R.Brackets(jnp.ones(4, bool), jnp.asarray([1.2, 0.9, 0.95, 1.05]), jnp.asarray([1.4, 1.1, 1.05, 1.1]))
+    _ROOT_SEARCHES.clear()
+    ev = R.first_event(lambda x: 1.0 + o - x, br, 1e-12, jnp.asarray(2.0), _CountingLocator())
+    jax.effects_barrier()
+    assert int(ev.index) == 1 and bool(ev.simultaneous)
+    assert 0.0 <= float(ev.t_star) - 1.0 <= 1e-12
+    assert len(_ROOT_SEARCHES) == 2
 
 
 class _FreeFall(eqx.Module):

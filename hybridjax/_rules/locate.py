@@ -260,20 +260,46 @@ def resolve_simultaneous(reached, num_counted: int | None = None):
 
 def first_event(values_at: Callable, br: Brackets, tol, t_end,
                 locator: AbstractEventLocator = DEFAULT_LOCATOR) -> EventChoice:
-    """The step's first event: each bracketed root located on the dense output (`locator.root`),
+    """The step's first event: the bracketed roots located on the dense output (`locator.root`),
     the earliest time t_min, and of the watched functions reached then (`simultaneous_set`) the
     first in listing order. Located only when some execution has an event in the step (under
     `jax.vmap`, `eqxi.unvmap_any`); none: `t_end`, index 0.
+
+    The roots are located one bracket at a time in the order of the brackets' starts $a_k$,
+    while $a_k \le t_{min} + $ `tol` ($t_{min}$ the earliest root so far): a root lies in its
+    bracket, so a function whose bracket starts later is neither first nor reached at
+    $t_{min}$ (`simultaneous_set`). One search runs where one function crosses in the step, not
+    one per watched function (a contact scene watches a hundred).
     """
     has, a, b = br
     any_event = jnp.any(has)
+    n = has.shape[0]
+
+    def root(k, a_k, b_k):
+        return locator.root(lambda x: values_at(x)[k], a_k, b_k, tol)
+
+    def roots_in_order():
+        order = jnp.argsort(jnp.where(has, a, jnp.inf))
+
+        def more(carry):
+            i, t_min, _ = carry
+            k = order[jnp.minimum(i, n - 1)]
+            return (i < n) & has[k] & (a[k] <= t_min + tol)
+
+        def next_root(carry):
+            i, t_min, tk = carry
+            k = order[i]
+            t_k = root(k, a[k], b[k])
+            return i + 1, jnp.minimum(t_min, t_k), jnp.where(jnp.arange(n) == k, t_k, tk)
+
+        inf = jnp.full((), jnp.inf, a.dtype)
+        return lax.while_loop(more, next_root, (jnp.array(0), inf, jnp.full((n,), inf)))[2]
 
     def locate(_):
-        def root(k, a_k, b_k):
-            return locator.root(lambda x: values_at(x)[k], a_k, b_k, tol)
-
-        tk = jax.vmap(root)(jnp.arange(has.shape[0]), a, b)
-        tk = jnp.where(has, tk, jnp.inf)
+        if n == 1:  # one watched function: its search, with no loop around it
+            tk = jnp.where(has, jax.vmap(root)(jnp.arange(n), a, b), jnp.inf)
+        else:
+            tk = roots_in_order()
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
