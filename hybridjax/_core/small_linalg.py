@@ -12,7 +12,10 @@ differentiable like any other array code.
 
 import jax
 import jax.numpy as jnp
+from jax.lax import Precision
 from jaxtyping import Array, Float
+
+HIGHEST = Precision.HIGHEST
 
 
 def _eliminate(m, n: int):
@@ -79,27 +82,35 @@ def cholesky(A) -> list:
 def spd_solve(A, B):
     """Solve $A X = B$, $A$ small symmetric positive definite, $B$ of shape (s,) or (s, r).
 
-    The factor is computed without gradients and the derivatives come from `custom_linear_solve`
-    (as `jnp.linalg.solve` does with its LU factors): a derivative of the solution is one more
-    pair of substitutions with the same factor, so the nested derivatives of a contact flow (the
-    start test's Lie derivatives) do not differentiate the factorisation itself."""
+    The factor $A = L L^\top$ and the inverse $L^{-1}$ are computed without gradients, and the
+    solution is $X = L^{-\top} (L^{-1} B)$, two matrix products. Its derivatives come from
+    `custom_linear_solve` (as `jnp.linalg.solve`'s do from its LU factors): a derivative of the
+    solution is the same two products applied to one more right-hand side, so the nested
+    derivatives of a contact flow (the start test's Lie derivatives) neither differentiate the
+    factorisation nor repeat a substitution unrolled over $s$ (a contact scene's program was
+    mostly such copies)."""
     A = 0.5 * (A + A.T)
-    L = cholesky(jax.lax.stop_gradient(A))
-    return jax.lax.custom_linear_solve(
-        lambda x: A @ x, B, solve=lambda _, b: _cho_substitute(L, b), symmetric=True
-    )
+    Linv = triangular_inverse(cholesky(jax.lax.stop_gradient(A)))
+
+    def solve(_, b):
+        return jnp.matmul(Linv.T, jnp.matmul(Linv, b, precision=HIGHEST), precision=HIGHEST)
+
+    return jax.lax.custom_linear_solve(lambda x: jnp.matmul(A, x, precision=HIGHEST), B, solve=solve,
+                                       symmetric=True)
 
 
-def _cho_substitute(L: list, B):
-    """Solve $L L^\top X = B$ ($B$ of shape (s,) or (s, r)) by substitution, row by row."""
+def triangular_inverse(L: list) -> Float[Array, "s s"]:
+    """$L^{-1}$ of a lower triangular factor given as rows of scalars (`cholesky`), by forward
+    substitution on the identity, unrolled: column j of $L^{-1}$ is zero above the diagonal,
+    $1 / L_{jj}$ on it, and $-\sum_{k=j}^{i-1} L_{ik} X_{kj} / L_{ii}$ below it."""
     s = len(L)
-    y = []
-    for i in range(s):
-        y.append((B[i] - sum((L[i][k] * y[k] for k in range(i)), jnp.zeros_like(B[i]))) / L[i][i])
-    x = [None] * s
-    for i in reversed(range(s)):
-        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, s)), jnp.zeros_like(B[i]))) / L[i][i]
-    return jnp.stack(x)
+    zero = jnp.zeros_like(L[0][0])
+    X = [[zero] * s for _ in range(s)]
+    for j in range(s):
+        X[j][j] = 1.0 / L[j][j]
+        for i in range(j + 1, s):
+            X[i][j] = -sum((L[i][k] * X[k][j] for k in range(j, i)), zero) / L[i][i]
+    return jnp.stack([jnp.stack(row) for row in X])
 
 
 def least_squares(
