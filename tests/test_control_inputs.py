@@ -126,3 +126,17 @@ def test_linearly_interpolated_thrust_gradient_matches_the_closed_form():
     # other control values reuse the compiled program
     value2, _ = linear_cost(jnp.asarray(U + 0.25))
     np.testing.assert_allclose(value2, _linear_truth(U + 0.25), rtol=1e-8)
+
+
+def test_batched_engine_keeps_the_table_index_exact():
+    # The batched engine reads event states from each step's Chebyshev series: the table index
+    # x[2] is constant between switches and must read as exactly the integer it is (2 read as
+    # 1.999... truncates to the previous table entry). Three thrust tables, against the closed form.
+    us = np.stack([U, U[::-1], U + 0.5])
+    args = {"g": jnp.full(3, G), "e": jnp.full(3, E), "u": jnp.asarray(us)}
+    x0 = jnp.broadcast_to(jnp.array([H0, 0.0, 0.0]), (3, 3))
+    sol = hj.simulate_batch(TABLE_BALL, x0, "flight", 0.0, T1, args, stepsize_controller=TIGHT,
+                            args_batched=True, engine="batched")
+    for i, u in enumerate(us):
+        bounces = np.asarray(sol.event_times[i])[np.asarray(sol.transitions[i]) == 0]
+        np.testing.assert_allclose(bounces[1], _table_truth(u), rtol=1e-10)

@@ -110,7 +110,15 @@ class ChebyshevDense(eqx.Module):
 
     @classmethod
     def from_stages(cls, A, t0, t1, y0, y1, ks):
-        rows = [stage_combination((r[0], r[1], r[2:]), y0, y1, ks) for r in A]
+        """The series of the step from `y0` to `y1` with stages `ks` (`chebyshev_weights` `A`),
+        written as $y_0$ plus the series of $y - y_0$: the interpolant reproduces constants
+        ($a_j + b_j = [j = 0]$), so this is the same polynomial, and a component constant over
+        the step ($y_1 = y_0$, its stages zero) has the coefficients $y_0, 0, 0, \dots$ exactly
+        and evaluates to $y_0$ bit for bit, where $a_j y_0 + b_j y_1$ is off by rounding (a
+        table index kept in the state would read 2 as 1.999... and truncate to 1)."""
+        dy = y1 - y0
+        rows = [r[1] * dy + weighted_sum(r[2:], list(ks), y0) for r in A]
+        rows[0] = rows[0] + y0
         return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
 
     def evaluate(self, t):
