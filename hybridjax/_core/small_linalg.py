@@ -87,8 +87,8 @@ def spd_solve(A, B):
     `custom_linear_solve` (as `jnp.linalg.solve`'s do from its LU factors): a derivative of the
     solution is the same two products applied to one more right-hand side, so the nested
     derivatives of a contact flow (the start test's Lie derivatives) neither differentiate the
-    factorisation nor repeat a substitution unrolled over $s$ (a contact scene's program was
-    mostly such copies)."""
+    factorisation nor repeat a substitution unrolled over $s$ (in a contact scene such copies
+    would be most of the program)."""
     A = 0.5 * (A + A.T)
     Linv = triangular_inverse(cholesky(jax.lax.stop_gradient(A)))
 

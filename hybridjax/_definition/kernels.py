@@ -56,7 +56,7 @@ def select_by_mode(mode, rows, size: int, fill, dtype) -> jax.Array:
 def row_by_mode(mode, table, dtype) -> jax.Array:
     """Row `mode` of the constant (modes, m) `table`: $\sum_I [I = \text{mode}]\,T_I$ as one
     select over the table and one sum, whatever the number of modes (a chain of one select per
-    mode made a scene's program grow with its modes). No gather by a traced index (slow on
+    mode would grow a scene's program with its modes). No gather by a traced index (slow on
     XLA:CPU under `jax.vmap`); exact, the sum adding zeros to one entry."""
     table = jnp.asarray(table, dtype)
     if table.shape[0] == 1:
@@ -84,7 +84,7 @@ def select_slots(mode, values, index, offset, fill) -> jax.Array:
     index = np.asarray(index, dtype=np.int64).reshape(len(index), -1)
     if index.shape[1] == 0:
         return jnp.zeros((0,), values.dtype)
-    idx = row_by_mode(mode, index, jnp.int32) if index.shape[0] > 1 else jnp.asarray(index[0], jnp.int32)
+    idx = row_by_mode(mode, index, jnp.int32)
     off = row_by_mode(mode, np.asarray(offset, dtype=float).reshape(index.shape), values.dtype)
     picked = pick_values(values, idx, fill)
     return jnp.where(idx >= 0, picked + off, picked)
