@@ -112,6 +112,9 @@ def evaluations_agree(system, args, xs, rtol=1e-9) -> int:
     own = Kernels(system, args)
     own.indexed = None
     assert mask.indexed is not None
+    # The engines' view: guards that share a function located on it, the transition chosen at
+    # the event (`ModeIndexed.locate_watch`, `select`).
+    located = Kernels(system, args, located=True)
 
     @jax.jit
     def both(mode, x):
@@ -123,11 +126,12 @@ def evaluations_agree(system, args, xs, rtol=1e-9) -> int:
             jets = [jnp.where(mine, j, 0.0) for j in kern.guard_jets(mode, t, x, args, 1e-8, 1e-8, 1e-10)]
             resets = jnp.stack([kern.reset(k, t, x, args) for k in range(system.num_transitions)])
             out.append((kern.flow(mode, t, x, args), kern.guards(mode, t, x, args), resets, *jets))
-        return out
+        chosen = jnp.stack([located.select(mode, jnp.asarray(k), t, x, args) for k in range(located.num_watch)])
+        return out, (located.guards(mode, t, x, args), chosen)
 
     compared = 0
     for m in range(system.num_modes):
-        a, b = jax.vmap(lambda x, m=m: both(jnp.asarray(m), x))(xs)
+        (a, b), (g_located, chosen) = jax.vmap(lambda x, m=m: both(jnp.asarray(m), x))(xs)
         for u, v in zip(a, b, strict=True):
             u, v = np.asarray(u), np.asarray(v)
             ok = np.isfinite(v)
@@ -135,4 +139,13 @@ def evaluations_agree(system, args, xs, rtol=1e-9) -> int:
             scale = 1 + np.max(np.abs(v[ok]), initial=0)
             np.testing.assert_allclose(u[ok], v[ok], rtol=rtol, atol=rtol * scale)
             compared += int(ok.sum())
+        # Each located value (but the constant 1 of a guard located through another) is the own
+        # guard of the transition chosen there: an impact located on its gap takes the release
+        # candidate whose own selection guard reads that gap.
+        g_own, g_located, chosen = np.asarray(b[1]), np.asarray(g_located), np.asarray(chosen)
+        read = np.take_along_axis(g_own, chosen, axis=1)
+        ok = np.isfinite(g_located) & (g_located != 1.0)
+        np.testing.assert_allclose(read[ok], g_located[ok], rtol=rtol,
+                                   atol=rtol * (1 + np.max(np.abs(g_located[ok]), initial=0)))
+        compared += int(ok.sum())
     return compared

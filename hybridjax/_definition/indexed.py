@@ -35,7 +35,9 @@ class ModeIndexed(eqx.Module):
 
     - `flow(mode, t, y, args)` $= F_{\text{mode}}(t, y)$, shape $(n,)$;
     - `watch(mode, t, y, args)`: the watched values of `mode`, shape (`num_slots`,);
-    - `reset(k, t, y, args)` $= R_k(t, y)$ of transition `k`, shape $(n,)$.
+    - `reset(k, t, y, args)` $= R_k(t, y)$ of transition `k`, shape $(n,)$;
+    - optionally `locate_watch` and `select`: transitions that share one guard function and
+      differ by a choice made at the event state, located on the shared function alone.
     """
 
     @abc.abstractmethod
@@ -49,3 +51,19 @@ class ModeIndexed(eqx.Module):
     @abc.abstractmethod
     def reset(self, k, t, y, args) -> jax.Array:
         """The reset of transition `k` (a traced index) at (t, y)."""
+
+    def locate_watch(self, mode, t, y, args) -> jax.Array:
+        r"""The watched values the engines detect and locate events with (`Kernels` with
+        `located=True`): `watch`, except where several transitions of a mode share one guard
+        function $g$ and differ by a discrete choice made at the event state (which of them
+        holds $g$'s crossing). There the first of them reads $g$, the others $+1$, and `select`
+        names the one taken once the event is located. The events' times are those of `watch`
+        (the transitions' guards cross zero where $g$ does, exactly one of them), and the choice
+        is evaluated once per event rather than at every guard evaluation of every step."""
+        return self.watch(mode, t, y, args)
+
+    def select(self, mode, slot, t, y, args) -> jax.Array:
+        """The slot of `mode` whose transition is taken when the event located on `slot`
+        (`locate_watch`) happens at (t, y); `slot` itself unless `locate_watch` shares a guard."""
+        del mode, t, y, args
+        return slot

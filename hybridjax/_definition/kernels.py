@@ -124,8 +124,13 @@ class Kernels:
     blocked when one of the current mode's reaches <= 0 before any guard does).
     """
 
-    def __init__(self, system: HybridSystem, args=None, dtype=None):
+    def __init__(self, system: HybridSystem, args=None, dtype=None, located: bool = False):
         self.system = system
+        # The engines' view of a `ModeIndexed` system (`located=True`): guards that share one
+        # function are watched through it alone and the transition taken is chosen at the event
+        # (`ModeIndexed.locate_watch`, `select`). Tools that ask where each guard holds (the
+        # property checks) keep every guard as it is (`watch`).
+        self.located = located
         self.n = system.max_dim
         self.num_transitions = system.num_transitions
         self.sources = jnp.asarray(system.sources, dtype=jnp.int32)
@@ -149,12 +154,33 @@ class Kernels:
                            for m in range(system.num_modes)]
         self.num_slots = max(map(len, self.mode_watch), default=0)
         # (modes, slots): the watched function in each mode's slot (0 where the slot is unused).
-        self.slot_watch = jnp.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
-                                       for own in self.mode_watch], dtype=jnp.int32)
+        slot_watch = np.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
+                                 for own in self.mode_watch], dtype=np.int32)
+        slot_watch = slot_watch.reshape(system.num_modes, self.num_slots)
+        self._slot_watch_table = slot_watch
+        self.slot_watch = jnp.asarray(slot_watch)
         # Each watched function's slot in its own mode (`from_slots`).
         self.watch_slot = [self.mode_watch[src].index(w) for w, (src, _) in enumerate(watch)]
         # One evaluation for the traced mode, where the system has it (`ModeIndexed`).
         self.indexed = system.mode_indexed()
+
+    def _indexed_watch(self, mode, t, y, args) -> jax.Array:
+        """The `ModeIndexed` watched values of `mode`, in slot order (`located`: `locate_watch`)."""
+        fn = self.indexed.locate_watch if self.located else self.indexed.watch
+        return fn(mode, t, y, args).astype(y.dtype)
+
+    def select(self, mode, k, t, y, args) -> jax.Array:
+        """The transition taken at an event of watched function `k` located at (t, y):
+        `ModeIndexed.select` where the engines locate on shared guards (`located`), else `k`.
+        A discrete choice: no gradient flows through it."""
+        if self.indexed is None or not self.located or self.num_transitions == 0:
+            return k
+        t, y, args = lax.stop_gradient((t, y, args))
+        watch_slot = np.asarray(self.watch_slot, np.int32)
+        slot = pick_values(jnp.asarray(watch_slot), jnp.clip(k, 0, self.num_watch - 1)[None], 0)[0]
+        chosen = self.indexed.select(mode, slot, t, y, args)
+        k_new = pick_values(row_by_mode(mode, self._slot_watch_table, jnp.int32), chosen[None], 0)[0]
+        return jnp.where(k < self.num_transitions, k_new, k).astype(jnp.asarray(k).dtype)
 
     # ---------------------------------------------------------------- per-mode pieces
     def mode_flow(self, i: int) -> Callable:
@@ -210,7 +236,7 @@ class Kernels:
         if self.num_watch == 0:
             return jnp.zeros((0,), dtype=y.dtype)
         if self.indexed is not None:
-            return self.from_slots(mode, self.indexed.watch(mode, t, y, args).astype(y.dtype), 1.0)
+            return self.from_slots(mode, self._indexed_watch(mode, t, y, args), 1.0)
         g = jnp.stack(self._watched_values(mode, t, y, args))
         return jnp.where(self.outgoing_mask(mode), g, jnp.ones_like(g))
 
@@ -220,7 +246,7 @@ class Kernels:
         (lanes, K + W) array is built, transposed and indexed (XLA:CPU did that for every guard
         sample of every step)."""
         if self.indexed is not None:
-            return self.indexed.watch(mode, t, y, args).astype(y.dtype)
+            return self._indexed_watch(mode, t, y, args)
         return self._slots(mode, self._watched_values(mode, t, y, args), 1.0, y.dtype)
 
     def to_slots(self, mode, values, fill=1.0) -> jax.Array:
@@ -304,7 +330,7 @@ class Kernels:
         """`guard_jets` of a `ModeIndexed` system: the current mode's watched values and flow in
         one evaluation each, their Lie derivatives by one nested jvp, mapped from slots to the
         watched functions (`from_slots`; those of other modes read L0 = 1, the rest 0)."""
-        g = lambda t_, y_: self.indexed.watch(mode, t_, y_, args).astype(y.dtype)  # noqa: E731
+        g = lambda t_, y_: self._indexed_watch(mode, t_, y_, args)  # noqa: E731
         f = lambda t_, y_: self.indexed.flow(mode, t_, y_, args)  # noqa: E731
         L0, L1, L2, L3 = lie_derivatives(g, f, t, y)
         gt, gx = jax.jacfwd(g, argnums=(0, 1))(t, y)  # (S,), (S, n)

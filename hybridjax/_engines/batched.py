@@ -217,7 +217,7 @@ class BatchedLoop:
         lanes = min(lanes, self.num_exec)
         self.refill = lanes < self.num_exec
         lane_args = args if args_axis is None else jtu.tree_map(lambda a: a[0], args)
-        self.kern = Kernels(system, lane_args, dtype)
+        self.kern = Kernels(system, lane_args, dtype, located=True)
         self.system, self.t1, self.args, self.args_axis = system, t1, args, args_axis
         self.solver, self.controller, self.dt0 = solver, controller, dt0
         self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
@@ -597,6 +597,7 @@ class BatchedLoop:
         # evaluations), a third of the run time of a batch of balls.
         interp = eqx.tree_at(lambda i: i.coeffs, interp, lax.optimization_barrier(interp.coeffs))
         t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e)
+        k = kern.select(mode, k, t_ev, y_before, a_e)
         if K:
             t_r, y_r, a_r = mask_inputs(any_event & ~blocks(k, K), (t_ev, y_before, args))
             y_after = kern.reset(jnp.minimum(k, K - 1), t_r, y_r, a_r)

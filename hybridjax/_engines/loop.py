@@ -183,7 +183,7 @@ class Loop:
         step_ts=None,
         jump_ts=None,
     ):
-        self.kern = Kernels(system, args, dtype)
+        self.kern = Kernels(system, args, dtype, located=True)
         self.step_ts, self.jump_ts = step_ts, jump_ts  # `clip_to_times`
         dt0, max_epochs, max_steps, zeno = options.dt0, options.max_epochs, options.max_steps, options.zeno
         interior_points, event_tol, max_zero_epochs = (options.events.interior_points, options.events.tol,
@@ -616,6 +616,7 @@ class Loop:
         t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)
         t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp, args)
+        k = kern.select(mode, k, t_ev, y_before, args)
         t_end = jnp.where(any_event, t_star, sg(t_next))
         saved = self._save(saved, active & saved_in_step(self.save_ts, sg(st.t), t_end), mode, interp, t,
                            t_next)

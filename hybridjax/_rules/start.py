@@ -118,7 +118,8 @@ def epoch_start(
 
     The watched functions' Lie derivatives L0..L3 and band (`Kernels.guard_jets`, with the
     event-time tolerance of the previous step h_prev) decide which fire (`start_decision`);
-    the first that fires is k (listing order: guards, then domain components). The first step
+    the first that fires is k (listing order: guards, then domain components; where guards are
+    located through a shared function, the transition taken at (t, y), `Kernels.select`). The first step
     is `first_step(initial, h_prev, carry)`, `initial` the controller's initial step, capped by
     `departure_step_bound`. The values are taken without gradients; F, the vector field at
     (t, y), keeps those of (t, y, args) (the next step's first stage).
@@ -132,6 +133,7 @@ def epoch_start(
     finite = jnp.all(jnp.isfinite(F)) & jnp.all(jnp.isfinite(jnp.where(outgoing, jets.L0, 0.0)))
     k, simultaneous = resolve_simultaneous(fire, kern.num_transitions)
     inside = strictly_inside(jets)[k] if kern.num_watch else jnp.array(False)
+    k = kern.select(mode, k, ts, ys, a_sg)
     h = jnp.minimum(first_step(initial, h_prev, carry), departure_step_bound(jets, outgoing, fire))
     return EpochStart(
         fire=jnp.any(fire),

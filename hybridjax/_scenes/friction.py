@@ -50,7 +50,7 @@ from jaxtyping import PRNGKeyArray
 from .._analysis.search import SearchOptions, box_samples
 from .._core import small_linalg as small_linalg
 from .._definition.indexed import ModeIndexed
-from .._definition.kernels import select_by_mode
+from .._definition.kernels import pick_values, select_by_mode
 from .._definition.system import Mode, Transition
 from .indexed import _by_mode
 from .mechanics import (
@@ -856,8 +856,9 @@ class FrictionEvaluation(ModeIndexed):
     """A friction system evaluated for the traced mode: every state is one friction solve
     (`friction_acceleration`) with the state's held rows, slip signs and least-norm flag, looked
     up in tables by the mode; the guards read its forces and the kinematics' rates, and the
-    discrete choices (an impact's outcome, where a stopping contact goes) are computed only where
-    one of the current mode's guards that reads them is at or below zero."""
+    discrete choices (an impact's outcome, where a stopping contact goes) are computed, in `watch`,
+    only where one of the current mode's guards that reads them is at or below zero, and for the
+    engines (`locate_watch`, `select`) once, at the located event."""
 
     # Static: the scene's Python callables and the tables that choose the code traced.
     scene: Scene = eqx.field(static=True)
@@ -948,6 +949,84 @@ class FrictionEvaluation(ModeIndexed):
 
         rows = [[value(sp) for sp in specs] for specs in self.slots]
         return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+
+    def _groups(self) -> list:
+        """Per mode, per slot: the slots of the same choice (an impact's outcomes of one
+        constraint, a stop's outcomes of one slipping contact; the slot alone elsewhere), and
+        whether the slot is the first of them."""
+        out = []
+        for specs in self.slots:
+            keys = [(sp.kind, sp.j) if sp.kind in ("impact", "stop") else ("own", s)
+                    for s, sp in enumerate(specs)]
+            out.append([([s2 for s2, k2 in enumerate(keys) if k2 == key], keys.index(key) == s)
+                        for s, key in enumerate(keys)])
+        return out
+
+    def locate_watch(self, mode, t, y, args) -> jax.Array:
+        """`watch` with each choice's selection guards located on the value they share (an
+        impact's gap, a stop's slip speed): the first reads it, the others +1; `select` takes
+        the choice at the event. No choice is solved while locating."""
+        n = self.scene.dim
+        tan = _layout(self.scene)[2]
+        row = [int(np.argmax(tan[i])) for i in range(len(self.scene.constraints))]
+        kin = self._kinematics(t, y, args)
+        mu = friction_coefficients(self.scene, args, y.dtype)
+        (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
+        gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
+        consistency_value = None
+        if any(sp.kind == "painleve" for specs in self.slots for sp in specs):
+            consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
+
+        def value(sp, first):
+            if sp.kind in ("impact", "stop") and not first:
+                return jnp.ones((), y.dtype)
+            if sp.kind == "painleve":
+                return consistency_value
+            if sp.kind == "impact":
+                return gaps[sp.j]
+            if sp.kind == "lift":
+                return lam[sp.j] + sp.offset
+            if sp.kind == "cone":
+                return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
+            if sp.kind == "stop":
+                return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
+            return jnp.asarray(sp.offset, y.dtype)
+
+        rows = [[value(sp, first) for sp, (_, first) in zip(specs, groups, strict=True)]
+                for specs, groups in zip(self.slots, self._groups(), strict=True)]
+        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+
+    def select(self, mode, slot, t, y, args) -> jax.Array:
+        """The slot of the choice located on `slot` whose outcome holds at (t, y) (exactly one
+        of a choice's slots takes each outcome, "none solves it" included); `slot` elsewhere."""
+        groups = self._groups()
+        if not any(len(g) > 1 for gs in groups for g, _ in gs):
+            return slot
+        n = self.scene.dim
+        kin = self._kinematics(t, y, args)
+        mu = friction_coefficients(self.scene, args, y.dtype)
+        (ddq, _), _, _ = self._solve(mode, kin, mu, y.dtype)
+        got = self._impact_outcomes(mode, kin, args, self._impact_tables(), y.dtype)
+        which, inside = self._stop_decisions(mode, kin, mu, y[n:], ddq, self._stop_tables(), y.dtype)
+
+        def taken(sp):
+            if sp.kind == "impact":
+                return jnp.any(jnp.stack([got[sp.j] == i for i in sp.ids]))
+            if sp.kind == "stop":
+                subsets = stop_subsets(sp.state, sp.j)
+                return stop_goes(which[sp.j], inside[sp.j], subsets, sp.to_stick, sp.tied)
+            return jnp.array(True)
+
+        S = max(map(len, self.slots), default=0)
+        # Per mode, (S,) the slot each slot's choice goes to.
+        rows = []
+        for specs, gs in zip(self.slots, groups, strict=True):
+            takes = [taken(sp) for sp in specs]
+            rows.append([jnp.asarray(members[0], jnp.int32) if len(members) == 1 else
+                         jnp.asarray(members, jnp.int32)[jnp.argmax(jnp.stack([takes[m] for m in members]))]
+                         for members, _ in gs])
+        target = select_by_mode(mode, rows, S, 0, jnp.int32)
+        return pick_values(target, slot[None], 0)[0]
 
     def _impact_tables(self) -> dict:
         """Per (mode, impacting constraint k) with an impact slot, its candidates padded to C

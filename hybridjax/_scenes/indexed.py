@@ -9,7 +9,9 @@ map with the mask of the new set, or the identity). `ContactEvaluation` looks th
 the guard of each slot and the reset of each transition up in tables by the traced index
 and solves once, where the engines would otherwise evaluate every mode's and every
 transition's function and select one: the cost of a step, and of compiling it, is that of
-one solve with all $K$ constraints, not of one per mode built.
+one solve with all $K$ constraints, not of one per mode built. An impact's release candidates
+share its gap: the engines watch the gap once (`locate_watch`) and solve the choice at the
+located event (`select`).
 """
 
 import equinox as eqx
@@ -143,11 +145,17 @@ class ContactEvaluation(ModeIndexed):
         terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
         return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
 
-    def watch(self, mode, t, y, args) -> jax.Array:
-        K = len(self.scene.constraints)
+    def _values(self, mode, t, y, args):
+        """The kinematics at (t, y), the impacts' gaps (K,) and what a slot picks from:
+        [gaps (K), row forces of `mode`, 0]."""
         kin = self._kinematics(t, y, args)
         _, lam = self._acceleration(mode, kin, y.dtype)
         gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
+        return kin, gaps, jnp.concatenate([gaps, lam, jnp.zeros((1,), y.dtype)])
+
+    def watch(self, mode, t, y, args) -> jax.Array:
+        K = len(self.scene.constraints)
+        kin, gaps, values = self._values(mode, t, y, args)
         # The impacts' choices of the current mode, only of the constraints whose selection
         # guards are read, those at or below zero (`selection_guard`).
         held, present, gap_rows, involved = self._choice_tables()
@@ -161,7 +169,6 @@ class ContactEvaluation(ModeIndexed):
         index, offset, selected, hit, chosen = self._slot_tables()
         if index.shape[1] == 0:
             return jnp.zeros((0,), y.dtype)
-        values = jnp.concatenate([gaps, lam, jnp.zeros((1,), y.dtype)])
         out = select_slots(mode, values, index, offset, 1.0)
         if not selected.any():
             return out
@@ -171,6 +178,67 @@ class ContactEvaluation(ModeIndexed):
         takes = row_by_mode(mode, chosen.reshape(len(chosen), -1), y.dtype).reshape(chosen.shape[1:]) > 0
         taken = jnp.any(takes & (pick[:, None] + 1 == jnp.arange(chosen.shape[2])[None, :]), axis=1)
         return jnp.where(row_by_mode(mode, selected, y.dtype) > 0, selection_guard(out, taken), out)
+
+    def locate_watch(self, mode, t, y, args) -> jax.Array:
+        r"""`watch` with each impact's selection guards located on its gap $a_k$ alone: the
+        first selection guard of an impact reads $a_k$, the others $+1$ (`_located_tables`);
+        `select` takes the release choice at the event. No choice is solved while locating."""
+        index, offset = self._located_tables()
+        if index.shape[1] == 0:
+            return jnp.zeros((0,), y.dtype)
+        _, _, values = self._values(mode, t, y, args)
+        return select_slots(mode, values, index, offset, 1.0)
+
+    def select(self, mode, slot, t, y, args) -> jax.Array:
+        """The selection guard of the impact located on `slot` that holds at (t, y): the one
+        whose candidates include the impact's `release_choice` there (exactly one does, "no
+        candidate solves it" included); `slot` where it is not a selection guard."""
+        _, _, selected, hit, _ = self._slot_tables()
+        if not selected.any():
+            return slot
+        redirect = self._redirect_table()  # (modes, S, C + 1)
+        M, S, C1 = redirect.shape
+        k = pick_values(row_by_mode(mode, hit, jnp.int32), slot[None], 0)[0]
+        kin = self._kinematics(t, y, args)
+        e = self._restitution(args, y.dtype)
+        tables = tuple(_by_mode(mode, tab.reshape(M, -1), y.dtype).reshape(tab.shape[1:])
+                       for tab in self._choice_tables())
+        pick = self._choice(k, kin, e, *tables)
+        row = row_by_mode(mode, redirect.reshape(M, -1), jnp.int32)
+        taken = pick_values(row, (slot * C1 + pick + 1)[None], 0)[0]
+        is_selected = pick_values(row_by_mode(mode, selected, y.dtype), slot[None], 0.0)[0] > 0
+        return jnp.where(is_selected, taken, slot)
+
+    def _located_tables(self):
+        """`_slot_tables`' index and offset with every selection guard but the first of each
+        impact reading the constant +1 (the zero entry plus an offset of 1)."""
+        index, offset, selected, hit, _ = self._slot_tables()
+        index, offset = index.copy(), offset.copy()
+        zero = len(self.scene.constraints) + len(self._rows()[0])
+        for m in range(index.shape[0]):
+            seen = set()
+            for s in range(index.shape[1]):
+                if selected[m, s]:
+                    if hit[m, s] in seen:
+                        index[m, s], offset[m, s] = zero, 1.0
+                    seen.add(hit[m, s])
+        return index, offset
+
+    def _redirect_table(self):
+        """(modes, S, C + 1): for a selection guard, the slot of its impact that takes each
+        outcome (column 0: none solves it; column c + 1: candidate c); the slot itself
+        elsewhere."""
+        _, _, selected, hit, chosen = self._slot_tables()
+        M, S, C1 = chosen.shape
+        redirect = np.broadcast_to(np.arange(S)[None, :, None], (M, S, C1)).copy()
+        for m in range(M):
+            for s in range(S):
+                if not selected[m, s]:
+                    continue
+                for s2 in range(S):
+                    if selected[m, s2] and hit[m, s2] == hit[m, s]:
+                        redirect[m, s, chosen[m, s2] > 0] = s2
+        return redirect
 
     def _slot_tables(self):
         """Constant (modes, S) tables of the slots: the index into [gaps (K), row forces, 0]
@@ -234,13 +302,22 @@ class ContactEvaluation(ModeIndexed):
         def body(carry):
             picks, left = carry
             k = jnp.argmax(left)
-            h, p, g, i = (row_by_mode(k, table, dtype) for table in (held, present, gap_rows, involved))
-            hit = (jnp.arange(R) == k).astype(dtype)  # constraint k's restitution on its gap row alone
-            pick = release_choice(kin, h.reshape(C, R), hit * e, i > 0, g > 0, self.least_norm, present=p > 0)
+            pick = self._choice(k, kin, e, held.reshape(K, C, R), present, gap_rows, involved)
             mine = jnp.arange(K) == k
             return jnp.where(mine, pick, picks), left & ~mine
 
         return lax.while_loop(lambda c: jnp.any(c[1]), body, (jnp.full((K,), -1, jnp.int32), need))[0]
+
+    def _choice(self, k, kin, e, held, present, gap_rows, involved) -> jax.Array:
+        """`release_choice` of the impact of constraint `k` (traced) at the state of `kin`, from
+        the current mode's choice tables (`_choice_tables`' rows: held (K, C, rows), present
+        (K, C), gap rows and rows involved (K, rows)); -1 where no candidate solves it."""
+        K, C, R = held.shape
+        dtype = kin.gap.dtype
+        h, p, g, i = (row_by_mode(k, table.reshape(K, -1), dtype)
+                      for table in (held, present, gap_rows, involved))
+        hit = (jnp.arange(R) == k).astype(dtype)  # constraint k's restitution on its gap row alone
+        return release_choice(kin, h.reshape(C, R), hit * e, i > 0, g > 0, self.least_norm, present=p > 0)
 
     def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
         n = self.scene.dim
