@@ -87,7 +87,7 @@ def contact_system(
         raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
     if form not in ("branch", "mask"):
         raise ValueError(f"contact_system: `form` must be 'branch' or 'mask', got {form!r}.")
-    friction = any(c.friction is not None for c in scene.constraints)
+    friction = any(len(c.tangential_law.states) > 1 for c in scene.constraints)
     builder = friction_system if friction else frictionless_system
     return builder(
         scene, initial, args, args_values=args_values, num_samples=num_samples, search=search,

@@ -54,6 +54,7 @@ from .._definition.kernels import select_by_mode
 from .._definition.system import Mode, Transition
 from .graph import ContactGraph, ExploreRules, Leaving, explore
 from .indexed import _by_mode
+from .laws import HELD, SLIP_NEG, SLIP_POS, STICK
 from .mechanics import (
     _INDEPENDENT,
     armed_values,
@@ -85,7 +86,6 @@ from .scene import (
     witness_text,
 )
 
-HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
 SIGN = {SLIP_POS: 1.0, SLIP_NEG: -1.0}
 # Sliding speeds within this fraction of 1 + max |dq| of 0 when another contact stops count as
 # stopped with it (a flat body's two ends stop at one instant, up to rounding).
@@ -109,17 +109,15 @@ def _layout(scene: Scene):
     tan = np.zeros((K, len(fns)))
     for r in range(K, len(fns)):
         tan[owners[r], r] = 1.0
-    friction = np.asarray([c.friction is not None for c in scene.constraints], dtype=float)
+    # The contacts whose tangential law has several states (stick and slip).
+    friction = np.asarray([len(c.tangential_law.states) > 1 for c in scene.constraints], dtype=float)
     unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
     return fns, owners, tan, friction, unilateral
 
 
 def friction_coefficients(scene: Scene, args, dtype) -> jax.Array:
     r"""$\mu_k$ of every constraint (0 where it has none)."""
-    mus = []
-    for c in scene.constraints:
-        mu = 0.0 if c.friction is None else (c.friction(args) if callable(c.friction) else c.friction)
-        mus.append(jnp.reshape(jnp.asarray(mu, dtype), ()))
+    mus = [jnp.reshape(jnp.asarray(c.tangential_law.coefficient(args), dtype), ()) for c in scene.constraints]
     return jnp.stack(mus)
 
 
@@ -135,13 +133,14 @@ def state_name(scene: Scene, state: tuple) -> str:
 
 def _state_arrays(scene: Scene, state: tuple):
     """(held over constraints, held rows, slip sign over constraints) of a state."""
-    _, owners, _, friction, _ = _layout(scene)
+    owners, laws = _layout(scene)[1], [c.tangential_law for c in scene.constraints]
     K = len(scene.constraints)
     held = np.asarray([s is not None for s in state], dtype=float)
     rows_mask = np.asarray(
-        [held[k] if r < K or not friction[k] else float(state[k] == STICK) for r, k in enumerate(owners)]
-    )
-    sign = np.asarray([SIGN.get(s, 0.0) for s in state])
+        [held[k] if r < K else float(state[k] is not None and laws[k].holds_tangent(state[k]))
+         for r, k in enumerate(owners)]
+    )  # fmt: skip
+    sign = np.asarray([0.0 if s is None else law.slip_sign(s) for s, law in zip(state, laws, strict=True)])
     return held, rows_mask, sign
 
 
@@ -149,7 +148,9 @@ def parse_state(scene: Scene, spec) -> tuple:
     """A state from `"free"`, `"left:stick+right"` or a sequence of such tokens; bilateral
     constraints are always held; a frictional contact needs its state named."""
     if isinstance(spec, str):
-        tokens = [] if spec == FREE else re.findall(r"([^+:]+(?::(?:stick|slip[+-]))?)\+?", spec)
+        named = sorted({s for c in scene.constraints for s in c.tangential_law.states if s != HELD}, key=len)
+        alternatives = "|".join(re.escape(s) for s in reversed(named))
+        tokens = [] if spec == FREE else re.findall(rf"([^+:]+(?::(?:{alternatives}))?)\+?", spec)
     else:
         tokens = list(spec)
     state = [HELD if c.kind != UNILATERAL else None for c in scene.constraints]
@@ -157,12 +158,14 @@ def parse_state(scene: Scene, spec) -> tuple:
         name, _, status = token.partition(":")
         k = scene.index(name)
         c = scene.constraints[k]
-        if c.friction is not None and status not in (STICK, SLIP_POS, SLIP_NEG):
+        states = c.tangential_law.states
+        if len(states) > 1 and status not in states:
+            quoted = [f"'{name}:{s}'" for s in states]
             raise ValueError(
-                f"contact_system: '{name}' has friction: name its state, '{name}:stick', "
-                f"'{name}:slip+' or '{name}:slip-' (got {token!r})."
+                f"contact_system: '{name}' has friction: name its state, {', '.join(quoted[:-1])} or "
+                f"{quoted[-1]} (got {token!r})."
             )
-        if c.friction is None and status:
+        if len(states) == 1 and status:
             raise ValueError(f"contact_system: '{name}' has no friction, so no state ({token!r}).")
         state[k] = status or HELD
     return tuple(state)
@@ -725,20 +728,20 @@ class _Rules(ExploreRules):
         for j in sorted(i for i, s in enumerate(S) if s is not None and unilateral[i]):
             query = _query(scene, S, lift=(j, 1.0), flowing=0.0)
             yield Leaving("lift-off", j, None, S[:j] + (None,) + S[j + 1 :], query)
-            if S[j] == STICK:
-                for d, status in ((1.0, SLIP_POS), (-1.0, SLIP_NEG)):
-                    query = _query(scene, S, unstick=(j, 1.0), direction=d)
-                    yield Leaving("slip", j, d, S[:j] + (status,) + S[j + 1 :], query)
-            elif S[j] in SIGN:
-                for tied in stop_subsets(S, j):
-                    mask = np.zeros(K)
-                    mask[list(tied)] = 1.0
-                    T = tuple(STICK if i in (j, *tied) else st for i, st in enumerate(S))
-                    query = _query(scene, S, stop=(j, 1.0), tied=mask, to_stick=1.0)
-                    yield Leaving("stop", j, tied, T, query)
-                other = SLIP_NEG if S[j] == SLIP_POS else SLIP_POS
-                query = _query(scene, S, stop=(j, 1.0), to_stick=0.0)
-                yield Leaving("stop", j, None, S[:j] + (other,) + S[j + 1 :], query)
+            for kind, detail, status in scene.constraints[j].tangential_law.changes(S[j]):
+                if kind == "slip":  # a sticking contact starts slipping in direction `detail`
+                    query = _query(scene, S, unstick=(j, 1.0), direction=detail)
+                    yield Leaving("slip", j, detail, S[:j] + (status,) + S[j + 1 :], query)
+                elif detail is not None:  # a slipping one stops and sticks, with those `tied` to it
+                    for tied in stop_subsets(S, j):
+                        mask = np.zeros(K)
+                        mask[list(tied)] = 1.0
+                        T = tuple(status if i in (j, *tied) else st for i, st in enumerate(S))
+                        query = _query(scene, S, stop=(j, 1.0), tied=mask, to_stick=1.0)
+                        yield Leaving("stop", j, tied, T, query)
+                else:  # it stops and slips back
+                    query = _query(scene, S, stop=(j, 1.0), to_stick=0.0)
+                    yield Leaving("stop", j, None, S[:j] + (status,) + S[j + 1 :], query)
 
 
 def _check_values(scene: Scene, values: list) -> None:

@@ -61,6 +61,15 @@ from .._core import small_linalg as small_linalg
 from .._core.names import one_of
 from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
 from .indexed import ContactEvaluation
+from .laws import (
+    AbstractImpactLaw,
+    AbstractTangentialLaw,
+    Coulomb,
+    Frictionless,
+    Newton,
+    Plastic,
+    Sticking,
+)
 from .mechanics import (
     constrained_acceleration,
     rows,
@@ -208,15 +217,28 @@ class Constraint(eqx.Module):
                 )
 
     @property
+    def impact_law(self) -> AbstractImpactLaw:
+        """The impact law the builders read, from `restitution`: plastic ($e = 0$) where it is None,
+        Newton's law with $e$ = `restitution` otherwise."""
+        return Plastic() if self.restitution is None else Newton(self.restitution)
+
+    @property
+    def tangential_law(self) -> AbstractTangentialLaw:
+        r"""The tangential law the builders read, from `tangent` and `friction`: Coulomb's with
+        $\mu$ = `friction` where it is given (stick, slip+, slip-), sticking where a `tangent` is
+        given alone, frictionless otherwise."""
+        if self.friction is not None:
+            return Coulomb(self.friction)
+        return Sticking() if self.tangent is not None else Frictionless()
+
+    @property
     def restitutes(self) -> bool:
         """True when an impact on this constraint separates it (restitution given and not 0)."""
-        return self.restitution is not None and (callable(self.restitution) or self.restitution > 0)
+        return self.impact_law.separates
 
     def coefficient(self, args) -> Any:
-        e = self.restitution
-        if e is None:
-            return 0.0
-        return e(args) if callable(e) else e
+        """The coefficient of restitution under `args` (0 for a plastic impact)."""
+        return self.impact_law.coefficient(args)
 
 
 def _check_friction(c: "Constraint") -> None:
