@@ -204,7 +204,6 @@ class _ModeFunctions(eqx.Module):
         return lambda t, x, args: self.solve(t, x, args)[1][pos] + offset
 
 
-
 # ----------------------------------------------------------------------------- search queries
 
 
@@ -268,7 +267,6 @@ def _run_queries(scene, queries, args_batch, samples, margin, least_norm, search
     """find_point for every (query, args value): Witness with leading axes (Q, V)."""
     eq, ineq = _query_functions(scene, margin, least_norm)
     return run_search(eq, ineq, queries, args_batch, samples, search)
-
 
 
 # ----------------------------------------------------------------------------- the contact graph
