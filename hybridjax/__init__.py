@@ -65,11 +65,11 @@ from ._rules.locate import AbstractEventLocator as AbstractEventLocator
 from ._rules.locate import BracketedNewton as BracketedNewton
 from ._rules.options import EventOptions as EventOptions
 from ._rules.options import SolveOptions as SolveOptions
+from ._scenes.build import contact_system as contact_system
 from ._scenes.scene import Constraint as Constraint
 from ._scenes.scene import ContactSystem as ContactSystem
 from ._scenes.scene import Relabel as Relabel
 from ._scenes.scene import Scene as Scene
-from ._scenes.scene import contact_system as contact_system
 from ._solution.solution import Epoch as Epoch
 from ._solution.solution import Solution as Solution
 from ._solve.engines import AbstractEngine as AbstractEngine

@@ -46,11 +46,11 @@ def _top(module: str) -> str:
     return module.split(".")[0]
 
 
-def _imports(module: str) -> set[str]:
+def _imports(module: str, source: str | None = None) -> set[str]:
     """The package modules (or subpackages) `module` imports, anywhere in it (functions included),
-    dotted from `hybridjax`."""
+    dotted from `hybridjax`; `source` in place of the module's file where given."""
     path = PACKAGE / (module.replace(".", "/") + ".py")
-    tree = ast.parse(path.read_text())
+    tree = ast.parse(path.read_text() if source is None else source)
     package = module.split(".")[:-1]  # the package holding `module`
     out: set[str] = set()
     for node in ast.walk(tree):
@@ -96,6 +96,50 @@ def test_the_import_parser_sees_every_form():
     assert "_engines.lanes" in _imports("_engines.batched")
     assert "examples" in _imports("__init__")
     assert "_solution.dense" in _imports("_solution.solution")
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str]:
+    """An import cycle of `graph` (module -> the modules it imports), as the modules along it with
+    the first repeated at the end; [] if there is none (depth-first search)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        path.append(m)
+        for n in sorted(graph.get(m, ())):
+            if state.get(n) == 1:
+                return path[path.index(n) :] + [n]
+            if n not in state and (found := visit(n)):
+                return found
+        state[m] = 2
+        path.pop()
+        return []
+
+    for m in sorted(graph):
+        if m not in state and (found := visit(m)):
+            return found
+    return []
+
+
+def test_the_cycle_search_finds_a_cycle_and_only_a_cycle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) == []
+    assert _cycle({"a": {"a"}}) == ["a", "a"]
+
+
+def test_a_function_level_import_is_seen():
+    source = "def f():\n    from .friction import friction_system\n    return friction_system\n"
+    assert _imports("_scenes.scene", source) == {"_scenes.friction"}
+
+
+def test_scenes_modules_have_no_import_cycle():
+    # Module-level and function-level imports alike: a lazy import inside a function is a cycle too.
+    scenes = [m for m in _modules() if _top(m) == "_scenes"]
+    graph = {m: {i for i in _imports(m) if i in scenes} for m in scenes}
+    assert len(scenes) >= 5 and graph["_scenes.friction"]
+    cycle = _cycle(graph)
+    assert not cycle, f"import cycle in hybridjax._scenes: {' -> '.join(cycle)}"
 
 
 def _names_used(module: str) -> set[str]:

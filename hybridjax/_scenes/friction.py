@@ -52,7 +52,9 @@ from .._core import small_linalg as small_linalg
 from .._definition.indexed import ModeIndexed
 from .._definition.kernels import pick_values, select_by_mode
 from .._definition.system import Mode, Transition
+from .graph import ContactGraph, ExploreRules, Leaving, explore
 from .indexed import _by_mode
+from .laws import HELD, SLIP_NEG, SLIP_POS, STICK
 from .mechanics import (
     _INDEPENDENT,
     armed_values,
@@ -72,19 +74,18 @@ from .scene import (
     UNBUILT,
     UNILATERAL,
     AbstractContactSystem,
+    Assembly,
     Scene,
     _identity,
     _releases,
     _set_fields,
-    _terminal_domain,
-    _terminal_flow,
     point_search_key,
     run_search,
     sample_box,
+    state_names,
     witness_text,
 )
 
-HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
 SIGN = {SLIP_POS: 1.0, SLIP_NEG: -1.0}
 # Sliding speeds within this fraction of 1 + max |dq| of 0 when another contact stops count as
 # stopped with it (a flat body's two ends stop at one instant, up to rounding).
@@ -108,17 +109,15 @@ def _layout(scene: Scene):
     tan = np.zeros((K, len(fns)))
     for r in range(K, len(fns)):
         tan[owners[r], r] = 1.0
-    friction = np.asarray([c.friction is not None for c in scene.constraints], dtype=float)
+    # The contacts whose tangential law has several states (stick and slip).
+    friction = np.asarray([len(c.tangential_law.states) > 1 for c in scene.constraints], dtype=float)
     unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
     return fns, owners, tan, friction, unilateral
 
 
 def friction_coefficients(scene: Scene, args, dtype) -> jax.Array:
     r"""$\mu_k$ of every constraint (0 where it has none)."""
-    mus = []
-    for c in scene.constraints:
-        mu = 0.0 if c.friction is None else (c.friction(args) if callable(c.friction) else c.friction)
-        mus.append(jnp.reshape(jnp.asarray(mu, dtype), ()))
+    mus = [jnp.reshape(jnp.asarray(c.tangential_law.coefficient(args), dtype), ()) for c in scene.constraints]
     return jnp.stack(mus)
 
 
@@ -134,13 +133,14 @@ def state_name(scene: Scene, state: tuple) -> str:
 
 def _state_arrays(scene: Scene, state: tuple):
     """(held over constraints, held rows, slip sign over constraints) of a state."""
-    _, owners, _, friction, _ = _layout(scene)
+    owners, laws = _layout(scene)[1], [c.tangential_law for c in scene.constraints]
     K = len(scene.constraints)
     held = np.asarray([s is not None for s in state], dtype=float)
     rows_mask = np.asarray(
-        [held[k] if r < K or not friction[k] else float(state[k] == STICK) for r, k in enumerate(owners)]
-    )
-    sign = np.asarray([SIGN.get(s, 0.0) for s in state])
+        [held[k] if r < K else float(state[k] is not None and laws[k].holds_tangent(state[k]))
+         for r, k in enumerate(owners)]
+    )  # fmt: skip
+    sign = np.asarray([0.0 if s is None else law.slip_sign(s) for s, law in zip(state, laws, strict=True)])
     return held, rows_mask, sign
 
 
@@ -148,7 +148,9 @@ def parse_state(scene: Scene, spec) -> tuple:
     """A state from `"free"`, `"left:stick+right"` or a sequence of such tokens; bilateral
     constraints are always held; a frictional contact needs its state named."""
     if isinstance(spec, str):
-        tokens = [] if spec == FREE else re.findall(r"([^+:]+(?::(?:stick|slip[+-]))?)\+?", spec)
+        named = sorted({s for c in scene.constraints for s in c.tangential_law.states if s != HELD}, key=len)
+        alternatives = "|".join(re.escape(s) for s in reversed(named))
+        tokens = [] if spec == FREE else re.findall(rf"([^+:]+(?::(?:{alternatives}))?)\+?", spec)
     else:
         tokens = list(spec)
     state = [HELD if c.kind != UNILATERAL else None for c in scene.constraints]
@@ -156,12 +158,14 @@ def parse_state(scene: Scene, spec) -> tuple:
         name, _, status = token.partition(":")
         k = scene.index(name)
         c = scene.constraints[k]
-        if c.friction is not None and status not in (STICK, SLIP_POS, SLIP_NEG):
+        states = c.tangential_law.states
+        if len(states) > 1 and status not in states:
+            quoted = [f"'{name}:{s}'" for s in states]
             raise ValueError(
-                f"contact_system: '{name}' has friction: name its state, '{name}:stick', "
-                f"'{name}:slip+' or '{name}:slip-' (got {token!r})."
+                f"contact_system: '{name}' has friction: name its state, {', '.join(quoted[:-1])} or "
+                f"{quoted[-1]} (got {token!r})."
             )
-        if c.friction is None and status:
+        if len(states) == 1 and status:
             raise ValueError(f"contact_system: '{name}' has no friction, so no state ({token!r}).")
         state[k] = status or HELD
     return tuple(state)
@@ -676,6 +680,113 @@ class FrictionSystem(AbstractContactSystem):
         return one
 
 
+def _friction_impact(scene: Scene, S: tuple, k: int) -> _FrictionImpact:
+    """The impact of `k` in state `S`, with the release candidates of its held unilateral contacts."""
+    unilateral = _layout(scene)[4]
+    held = {i for i, s in enumerate(S) if s is not None and unilateral[i]}
+    return _FrictionImpact(scene, S, k, tuple(tuple(sorted(r)) for r in _releases(held)))
+
+
+class _Rules(ExploreRules):
+    """The explorer's rules for friction states (per constraint: None, held, stick, slip+, slip-)."""
+
+    noun = "states"
+
+    def __init__(self, scene: Scene, values: list, key, num_samples: int, margin: float,
+                 search: SearchOptions):  # fmt: skip
+        dtype = jnp.result_type(float)
+        self.scene, self.margin, self.options, self.dtype = scene, margin, search, dtype
+        self.args_batch = (
+            jnp.arange(len(values)),
+            jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
+        )
+        pts = box_samples(point_search_key(key, None), tuple(sample_box(scene, dtype)), num_samples)
+        self.samples = (pts[:, -1], pts[:, :-1])
+
+    def search(self, queries):
+        return _run(self.scene, queries, self.args_batch, self.samples, self.margin, self.options)
+
+    def outcome(self, w, i):
+        found_v = w.found[i]
+        if found_v.any():
+            return tuple(int(a) for a in np.flatnonzero(found_v)), witness_text(w, i, self.scene.dim)
+        least = np.nanmin(w.violation[i])
+        return (), f"no state of the source found in the guard (least violation {least:.2g})"
+
+    def leaving(self, S):
+        scene, K = self.scene, len(self.scene.constraints)
+        unilateral = _layout(scene)[4]
+        for k in sorted(i for i in range(K) if unilateral[i] and S[i] is None):
+            imp = _friction_impact(scene, S, k)
+            for o, (c, signs) in enumerate(imp.outcomes):
+                post, released = np.zeros(K), np.zeros(K)
+                post[list(imp.frictional(c))] = signs
+                released[list(imp.candidates[c])] = 1.0
+                query = _query(scene, S, hit=(k, 1.0), impact_rows=np.asarray(imp.held_rows(c, self.dtype)),
+                               released=released, post=post)  # fmt: skip
+                yield Leaving("impact", k, o, imp.target((c, signs)), query)
+        for j in sorted(i for i, s in enumerate(S) if s is not None and unilateral[i]):
+            query = _query(scene, S, lift=(j, 1.0), flowing=0.0)
+            yield Leaving("lift-off", j, None, S[:j] + (None,) + S[j + 1 :], query)
+            for kind, detail, status in scene.constraints[j].tangential_law.changes(S[j]):
+                if kind == "slip":  # a sticking contact starts slipping in direction `detail`
+                    query = _query(scene, S, unstick=(j, 1.0), direction=detail)
+                    yield Leaving("slip", j, detail, S[:j] + (status,) + S[j + 1 :], query)
+                elif detail is not None:  # a slipping one stops and sticks, with those `tied` to it
+                    for tied in stop_subsets(S, j):
+                        mask = np.zeros(K)
+                        mask[list(tied)] = 1.0
+                        T = tuple(status if i in (j, *tied) else st for i, st in enumerate(S))
+                        query = _query(scene, S, stop=(j, 1.0), tied=mask, to_stick=1.0)
+                        yield Leaving("stop", j, tied, T, query)
+                else:  # it stops and slips back
+                    query = _query(scene, S, stop=(j, 1.0), to_stick=0.0)
+                    yield Leaving("stop", j, None, S[:j] + (status,) + S[j + 1 :], query)
+
+
+def _check_values(scene: Scene, values: list) -> None:
+    """The scene's shapes and the friction coefficients (>= 0) at every `args` value."""
+    if not values:
+        raise ValueError("contact_system: `args_values` is empty.")
+    dtype = jnp.result_type(float)
+    for v in values:
+        scene.check(v)
+        mus = np.asarray(friction_coefficients(scene, v, dtype))
+        for c, mu in zip(scene.constraints, mus, strict=True):
+            if c.friction is not None and not mu >= 0:
+                raise ValueError(
+                    f"Constraint '{c.name}': the friction coefficient must be >= 0, got {mu} for args {v!r}."
+                )
+
+
+def _initial_states(scene: Scene, rules: _Rules, initial: Sequence, values: list) -> list:
+    """The initial states: each with a consistent state in the scene's ranges, its held
+    constraints independent."""
+    n, fns = scene.dim, _layout(scene)[0]
+    initial_states = list(dict.fromkeys(parse_state(scene, s) for s in initial))
+    if not initial_states:
+        raise ValueError("contact_system: give at least one initial contact set.")
+    w = rules.search([_query(scene, S, flowing=0.0) for S in initial_states])
+    for i, S in enumerate(initial_states):
+        if not w.found[i].any():
+            raise ValueError(
+                f"contact_system: the initial state {state_name(scene, S)} has no consistent state in "
+                f"the scene's ranges (least violation {np.nanmin(w.violation[i]):.2g})."
+            )
+        v = int(np.argmax(w.found[i]))
+        rows_mask = jnp.asarray(_state_arrays(scene, S)[1], rules.dtype)
+        if (
+            independence(scene, fns, rows_mask, w.t[i, v], jnp.asarray(w.x[i, v, :n]), values[v])
+            <= _INDEPENDENT
+        ):
+            names = [scene.constraints[j].name for j, s in enumerate(S) if s is not None]
+            raise ValueError(
+                f"contact_system: the initial state {state_name(scene, S)} has dependent constraints "
+                f"{names} (redundant contacts); remove one of them."
+            )
+    return initial_states
+
+
 def friction_system(
     scene: Scene,
     initial: Sequence,
@@ -691,7 +802,8 @@ def friction_system(
     form: str = "mask",
     search: SearchOptions = SearchOptions(),
 ) -> FrictionSystem:
-    """`contact_system` for a scene with frictional contacts (see the module notes)."""
+    """`contact_system` for a scene with frictional contacts (see the module notes): its graph
+    of friction states, assembled."""
     if relabels:
         raise ValueError("contact_system: `relabels` are not available for scenes with friction.")
     if redundant != "error":
@@ -699,123 +811,10 @@ def friction_system(
             "contact_system: scenes with friction need independent contacts (redundant='error')."
         )
     values = list(args_values) if args_values is not None else [args]
-    if not values:
-        raise ValueError("contact_system: `args_values` is empty.")
-    dtype = jnp.result_type(float)
-    for v in values:
-        scene.check(v)
-        mus = np.asarray(friction_coefficients(scene, v, dtype))
-        for c, mu in zip(scene.constraints, mus, strict=True):
-            if c.friction is not None and not mu >= 0:
-                raise ValueError(
-                    f"Constraint '{c.name}': the friction coefficient must be >= 0, got {mu} for args {v!r}."
-                )
-    K, n = len(scene.constraints), scene.dim
-    fns, owners, tan, friction, unilateral = _layout(scene)
-    args_batch = (
-        jnp.arange(len(values)),
-        jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
-    )
-    pts = box_samples(point_search_key(key, None), tuple(sample_box(scene, dtype)), num_samples)
-    samples = (pts[:, -1], pts[:, :-1])
-
-    def witnesses(qs):
-        return _run(scene, qs, args_batch, samples, margin, search)
-
-    initial_states = list(dict.fromkeys(parse_state(scene, s) for s in initial))
-    if not initial_states:
-        raise ValueError("contact_system: give at least one initial contact set.")
-    w = witnesses([_query(scene, S, flowing=0.0) for S in initial_states])
-    for i, S in enumerate(initial_states):
-        if not w.found[i].any():
-            raise ValueError(
-                f"contact_system: the initial state {state_name(scene, S)} has no consistent state in "
-                f"the scene's ranges (least violation {np.nanmin(w.violation[i]):.2g})."
-            )
-        v = int(np.argmax(w.found[i]))
-        rows_mask = jnp.asarray(_state_arrays(scene, S)[1], dtype)
-        if (
-            independence(scene, fns, rows_mask, w.t[i, v], jnp.asarray(w.x[i, v, :n]), values[v])
-            <= _INDEPENDENT
-        ):
-            names = [scene.constraints[j].name for j, s in enumerate(S) if s is not None]
-            raise ValueError(
-                f"contact_system: the initial state {state_name(scene, S)} has dependent constraints "
-                f"{names} (redundant contacts); remove one of them."
-            )
-
-    built = list(initial_states)
-    impacts: dict[tuple, _FrictionImpact] = {}
-    outcomes: dict[tuple, list] = {}  # (S, kind, j) -> [(detail, target, found, text)]
-    frontier = list(built)
-    while frontier:
-        qs, keys = [], []
-        for S in frontier:
-            held = {i for i, s in enumerate(S) if s is not None}
-            for k in sorted(i for i in range(K) if unilateral[i] and S[i] is None):
-                imp = _FrictionImpact(
-                    scene,
-                    S,
-                    k,
-                    tuple(tuple(sorted(r)) for r in _releases({i for i in held if unilateral[i]})),
-                )
-                impacts[(S, k)] = imp
-                for o, (c, signs) in enumerate(imp.outcomes):
-                    post = np.zeros(K)
-                    post[list(imp.frictional(c))] = signs
-                    released = np.zeros(K)
-                    released[list(imp.candidates[c])] = 1.0
-                    qs.append(
-                        _query(
-                            scene,
-                            S,
-                            hit=(k, 1.0),
-                            impact_rows=np.asarray(imp.held_rows(c, dtype)),
-                            released=released,
-                            post=post,
-                        )  # fmt: skip
-                    )
-                    keys.append((S, "impact", k, o, imp.target((c, signs))))
-            for j in sorted(held):
-                if not unilateral[j]:
-                    continue
-                qs.append(_query(scene, S, lift=(j, 1.0), flowing=0.0))
-                keys.append((S, "lift-off", j, None, S[:j] + (None,) + S[j + 1 :]))
-                if S[j] == STICK:
-                    for d, status in ((1.0, SLIP_POS), (-1.0, SLIP_NEG)):
-                        qs.append(_query(scene, S, unstick=(j, 1.0), direction=d))
-                        keys.append((S, "slip", j, d, S[:j] + (status,) + S[j + 1 :]))
-                elif S[j] in SIGN:
-                    others = _StateFunctions(scene, S).others_slipping(j)
-                    for size in range(len(others) + 1):
-                        for tied in itertools.combinations(others, size):
-                            mask = np.zeros(K)
-                            mask[list(tied)] = 1.0
-                            T = tuple(STICK if i in (j, *tied) else st for i, st in enumerate(S))
-                            qs.append(_query(scene, S, stop=(j, 1.0), tied=mask, to_stick=1.0))
-                            keys.append((S, "stop", j, tied, T))
-                    other = SLIP_NEG if S[j] == SLIP_POS else SLIP_POS
-                    qs.append(_query(scene, S, stop=(j, 1.0), to_stick=0.0))
-                    keys.append((S, "stop", j, None, S[:j] + (other,) + S[j + 1 :]))
-        frontier = []
-        if not qs:
-            break
-        w = witnesses(qs)
-        for i, (S, kind, j, detail, T) in enumerate(keys):
-            found_v = w.found[i]
-            if found_v.any():
-                text = witness_text(w, i, n)
-                if T not in built:
-                    if len(built) >= max_modes:
-                        raise ValueError(f"contact_system: more than max_modes={max_modes} states reached.")
-                    built.append(T)
-                    frontier.append(T)
-            else:
-                least = np.nanmin(w.violation[i])
-                text = f"no state of the source found in the guard (least violation {least:.2g})"
-            outcomes.setdefault((S, kind, j), []).append((detail, T, bool(found_v.any()), text))
-
-    return _assemble(scene, built, outcomes, impacts, margin, len(values), form)
+    _check_values(scene, values)
+    rules = _Rules(scene, values, key, num_samples, margin, search)
+    graph = explore(rules, _initial_states(scene, rules, initial, values), max_modes)
+    return _assemble(scene, graph, margin, len(values), form)
 
 
 # ----------------------------------------------------------------------------- mode-indexed evaluation
@@ -1134,135 +1133,115 @@ class FrictionEvaluation(ModeIndexed):
         return jnp.concatenate([y[:n], jnp.where(jnp.asarray(moves)[k], dq_plus, y[n:])])
 
 
-def _assemble(scene, built, outcomes, impacts, margin, num_values, form="mask") -> FrictionSystem:
+def _add(asm: Assembly, src: str, T: tuple, guard, reset, label: str, edge_text: str, ok: bool, slot,
+         reset_spec=None) -> None:  # fmt: skip
+    """A transition of `src` labelled `label` (`"<kind> <constraint>"`): to state `T` if `ok`,
+    else to the terminal mode `"unbuilt: <T>"`, listed as pruned."""
+    tgt = state_name(asm.scene, T)
+    if not ok:
+        tgt = asm.terminal(UNBUILT + tgt)
+        asm.pruned.append(f"  pruned: {label} in {src} -> {state_name(asm.scene, T)}: {edge_text}")
+    else:
+        asm.achievable.append((src, tgt, label.split(" ")[0], label.split(" ")[-1], edge_text))
+    transition = Transition(src, tgt, guard=guard, reset=reset or _identity, name=f"{label}: {src} -> {tgt}")
+    asm.add(transition, slot, reset_spec or FrictionReset())
+
+
+def _add_impacts(asm: Assembly, S: tuple, j: int, edges: list) -> None:
+    """An impact of `j` in `S`: a transition per outcome found, one into a terminal mode for the
+    outcomes not found (or for an impact no candidate solves)."""
+    scene = asm.scene
+    src, cname = state_name(scene, S), scene.constraints[j].name
+    imp = _friction_impact(scene, S, j)
+    missing = tuple(e.detail for e in edges if not e.found) + (-1,)
+    for e in edges:
+        if e.found:
+            c = imp.outcomes[e.detail][0]
+            rows_c = tuple(map(float, imp.held_rows(c)))
+            slot = FrictionSlot("impact", j, ids=(e.detail,), impact=imp)
+            _add(asm, src, e.target, imp.guard((e.detail,)), imp.reset(c), f"impact {cname}", e.text, True,
+                 slot, FrictionReset(rows_c, j, restitute=True))  # fmt: skip
+    first = next((e.target for e in edges if not e.found), None)
+    if first is not None:
+        texts = "; ".join(e.text for e in edges if not e.found)
+        _add(asm, src, first, imp.guard(missing), None, f"impact {cname}", texts, False,
+             FrictionSlot("impact", j, ids=missing, impact=imp))  # fmt: skip
+    else:  # no valid candidate: an impact that cannot be resolved stops the execution
+        term = asm.terminal(f"{INCONSISTENT}impact of {cname} in {src}")
+        asm.add(Transition(src, term, guard=imp.guard((-1,)), name=f"impact {cname}: {term}"),
+                FrictionSlot("impact", j, ids=(-1,), impact=imp), FrictionReset())  # fmt: skip
+
+
+def _add_state_change(asm: Assembly, fns: _StateFunctions, kind: str, j: int, edge, margin: float) -> None:
+    """A lift-off, a stick to slip (`slip`) or a slip's stop (to stick, or reversing) of `j`."""
+    scene, S, n = asm.scene, fns.state, asm.scene.dim
+    detail, T = edge.detail, edge.target
+    off = 0.0 if edge.found else margin
+    if kind == "lift-off":
+        guard, slot = fns.normal(j, off), FrictionSlot("lift", j, off)
+    elif kind == "slip":
+        guard, slot = fns.cone(j, detail, off), FrictionSlot("cone", j, off, d=detail)
+    else:
+        guard = fns.stop(j, detail is not None, detail or ())
+        slot = FrictionSlot("stop", j, state=S, to_stick=detail is not None, tied=detail or ())
+    stick = kind == "stop" and detail is not None
+    reset = _StateFunctions(scene, T).project if stick else None
+    reset_spec = None
+    if stick:
+        _, rows_T, _ = _state_arrays(scene, T)
+        reset_spec = FrictionReset(tuple(map(float, rows_T)), least_norm=bool(rows_T.sum() > n))
+    label = {"lift-off": "lift-off", "slip": "slip", "stop": "stick" if stick else "reverse"}[kind]
+    _add(asm, state_name(scene, S), T, guard, reset, f"{label} {scene.constraints[j].name}", edge.text,
+         edge.found, slot, reset_spec)  # fmt: skip
+
+
+def _assemble(scene: Scene, graph: ContactGraph, margin: float, num_values: int, form: str) -> FrictionSystem:
     """Modes, transitions (in each mode: consistency, impacts, lift-offs, stick/slip) and the
     report of a friction build."""
-    n = scene.dim
+    n, built = scene.dim, graph.states
     funcs = {S: _StateFunctions(scene, S) for S in built}
-    names = scene.names or tuple(f"q[{i}]" for i in range(n))
-    comp = tuple(names) + tuple(f"d{s}" for s in names)
-    modes = [Mode(state_name(scene, S), funcs[S].flow, dim=2 * n, names=comp) for S in built]
-    transitions, achievable, pruned, terminals = [], [], [], {}
-    slot_specs, reset_specs = [], []  # per transition, for `FrictionEvaluation`
-
-    def add(src, T, guard, reset, label, text, ok, slot=None, reset_spec=None):
-        tgt = state_name(scene, T)
-        if not ok:
-            tgt = UNBUILT + tgt
-            terminals[tgt] = None
-            pruned.append(f"  pruned: {label} in {src} -> {state_name(scene, T)}: {text}")
-        else:
-            achievable.append((src, tgt, label.split(" ")[0], label.split(" ")[-1], text))
-        transitions.append(
-            Transition(src, tgt, guard=guard, reset=reset or _identity, name=f"{label}: {src} -> {tgt}")
-        )
-        slot_specs.append(slot)
-        reset_specs.append(reset_spec or FrictionReset())
-
+    asm = Assembly(scene, [Mode(state_name(scene, S), funcs[S].flow, dim=2 * n, names=state_names(scene))
+                           for S in built])  # fmt: skip
     for S in built:
         src = state_name(scene, S)
         if any(s in SIGN for s in S):
-            term = INCONSISTENT + src
-            terminals[term] = None
-            transitions.append(
-                Transition(src, term, guard=funcs[S].consistency, name=f"painleve: {src} -> {term}")
-            )
-            slot_specs.append(FrictionSlot("painleve"))
-            reset_specs.append(FrictionReset())
-        for (S_, kind, j), items in outcomes.items():
-            if S_ != S:
-                continue
-            cname = scene.constraints[j].name
+            term = asm.terminal(INCONSISTENT + src)
+            asm.add(Transition(src, term, guard=funcs[S].consistency, name=f"painleve: {src} -> {term}"),
+                    FrictionSlot("painleve"), FrictionReset())  # fmt: skip
+        for (kind, j), edges in graph.leaving(S):
             if kind == "impact":
-                imp = impacts[(S, j)]
-                missing = tuple(o for o, _, ok, _ in items if not ok) + (-1,)
-                for o, T, ok, text in items:
-                    if ok:
-                        c = imp.outcomes[o][0]
-                        rows_c = tuple(map(float, imp.held_rows(c)))
-                        add(
-                            src,
-                            T,
-                            imp.guard((o,)),
-                            imp.reset(c),
-                            f"impact {cname}",
-                            text,
-                            True,
-                            FrictionSlot("impact", j, ids=(o,), impact=imp),
-                            FrictionReset(rows_c, j, restitute=True),
-                        )
-                first = next((T for _, T, ok, _ in items if not ok), None)
-                if first is not None:
-                    texts = "; ".join(t for _, _, ok, t in items if not ok)
-                    add(src, first, imp.guard(missing), None, f"impact {cname}", texts, False,
-                        FrictionSlot("impact", j, ids=missing, impact=imp))
-                else:  # no valid candidate: an impact that cannot be resolved stops the execution
-                    term = f"{INCONSISTENT}impact of {cname} in {src}"
-                    terminals[term] = None
-                    transitions.append(
-                        Transition(src, term, guard=imp.guard((-1,)), name=f"impact {cname}: {term}")
-                    )
-                    slot_specs.append(FrictionSlot("impact", j, ids=(-1,), impact=imp))
-                    reset_specs.append(FrictionReset())
-            for detail, T, ok, text in items if kind != "impact" else ():
-                off = 0.0 if ok else margin
-                if kind == "lift-off":
-                    guard = funcs[S].normal(j, off)
-                    slot = FrictionSlot("lift", j, off)
-                elif kind == "slip":
-                    guard = funcs[S].cone(j, detail, off)
-                    slot = FrictionSlot("cone", j, off, d=detail)
-                else:
-                    guard = funcs[S].stop(j, detail is not None, detail or ())
-                    slot = FrictionSlot("stop", j, state=S, to_stick=detail is not None, tied=detail or ())
-                stick = kind == "stop" and detail is not None
-                reset = _StateFunctions(scene, T).project if stick else None
-                reset_spec = None
-                if stick:
-                    _, rows_T, _ = _state_arrays(scene, T)
-                    reset_spec = FrictionReset(tuple(map(float, rows_T)), least_norm=bool(rows_T.sum() > n))
-                label = {"lift-off": "lift-off", "slip": "slip", "stop": "stick" if stick else "reverse"}[
-                    kind
-                ]
-                add(src, T, guard, reset, f"{label} {cname}", text, ok, slot, reset_spec)
-    for term in terminals:
-        modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
-    # Slots in the engine's order: each mode's transitions in index order, then a terminal mode's
-    # one domain component (-1).
-    mode_names = [m.name for m in modes]
-    sources = [mode_names.index(tr.source) for tr in transitions]
+                _add_impacts(asm, S, j, edges)
+            else:
+                for edge in edges:
+                    _add_state_change(asm, funcs[S], kind, j, edge, margin)
+    asm.close()
+    num_terminal = len(asm.terminals)
     evaluation = FrictionEvaluation(
         scene=scene,
-        states=tuple(built) + (None,) * len(terminals),
-        slots=tuple(
-            tuple(slot_specs[i] for i, m_ in enumerate(sources) if m_ == m)
-            + ((FrictionSlot("constant", offset=-1.0),) if m >= len(built) else ())
-            for m in range(len(modes))
-        ),
-        resets=tuple(reset_specs),
+        states=tuple(built) + (None,) * num_terminal,
+        slots=asm.mode_slots(FrictionSlot("constant", offset=-1.0)),
+        resets=tuple(asm.resets),
     )
-
     report = [f"states built: {len(built)} ({', '.join(state_name(scene, S) for S in built)})"]
-    report += [f"  achievable: {kind} of {c}: {s} -> {t}; {text}" for s, t, kind, c, text in achievable]
-    report += pruned
+    report += [f"  achievable: {kind} of {c}: {s} -> {t}; {text}" for s, t, kind, c, text in asm.achievable]
+    report += asm.pruned
     if num_values > 1:
         report.append(
             f"  built over {num_values} args values: a batch or a derivative across values "
             "that change the transitions found needs a system built over all of them"
         )
-    states = tuple(built) + (None,) * len(terminals)
     contact_sets = tuple(
         tuple(c.name for c, s in zip(scene.constraints, S, strict=True) if s is not None) for S in built
     )
     return FrictionSystem(
-        modes,
-        transitions,
-        states=states,
+        asm.modes,
+        asm.transitions,
+        states=tuple(built) + (None,) * num_terminal,
         scene=scene,
-        contact_sets=contact_sets + (None,) * len(terminals),
-        least_norm_modes=(False,) * len(modes),
+        contact_sets=contact_sets + (None,) * num_terminal,
+        least_norm_modes=(False,) * len(asm.modes),
         report=tuple(report),
-        achievable=tuple(achievable),
+        achievable=tuple(asm.achievable),
         form=form,
         evaluation=evaluation if form == "mask" else None,
     )

@@ -43,6 +43,7 @@ unbuilt candidates, or in a terminal mode `"inconsistent: impact of <k> in <set>
 """
 
 import abc
+import dataclasses
 import functools
 import itertools
 from collections.abc import Callable, Sequence
@@ -55,26 +56,23 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._analysis.search import SearchOptions, box_samples, find_point, search_options
+from .._analysis.search import SearchOptions, find_point
 from .._core import small_linalg as small_linalg
 from .._core.names import one_of
 from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
-from .indexed import CONSTANT, FORCE, GAP, SELECTED, ContactEvaluation, ReleaseChoice, ResetSpec, SlotSpec
+from .indexed import ContactEvaluation
+from .laws import (
+    AbstractImpactLaw,
+    AbstractTangentialLaw,
+    Coulomb,
+    Frictionless,
+    Newton,
+    Plastic,
+    Sticking,
+)
 from .mechanics import (
-    _INDEPENDENT,
-    _row_mask,
-    acceleration,
-    armed_values,
     constrained_acceleration,
-    constraint_gaps,
-    impact,
-    impact_gaps,
-    impact_map,
-    independence,
-    kinematics,
-    release_choice,
     rows,
-    selection_guard,
 )
 
 UNILATERAL = "unilateral"
@@ -219,15 +217,28 @@ class Constraint(eqx.Module):
                 )
 
     @property
+    def impact_law(self) -> AbstractImpactLaw:
+        """The impact law the builders read, from `restitution`: plastic ($e = 0$) where it is None,
+        Newton's law with $e$ = `restitution` otherwise."""
+        return Plastic() if self.restitution is None else Newton(self.restitution)
+
+    @property
+    def tangential_law(self) -> AbstractTangentialLaw:
+        r"""The tangential law the builders read, from `tangent` and `friction`: Coulomb's with
+        $\mu$ = `friction` where it is given (stick, slip+, slip-), sticking where a `tangent` is
+        given alone, frictionless otherwise."""
+        if self.friction is not None:
+            return Coulomb(self.friction)
+        return Sticking() if self.tangent is not None else Frictionless()
+
+    @property
     def restitutes(self) -> bool:
         """True when an impact on this constraint separates it (restitution given and not 0)."""
-        return self.restitution is not None and (callable(self.restitution) or self.restitution > 0)
+        return self.impact_law.separates
 
     def coefficient(self, args) -> Any:
-        e = self.restitution
-        if e is None:
-            return 0.0
-        return e(args) if callable(e) else e
+        """The coefficient of restitution under `args` (0 for a plastic impact)."""
+        return self.impact_law.coefficient(args)
 
 
 def _check_friction(c: "Constraint") -> None:
@@ -453,220 +464,12 @@ def _releases(held_unilateral):
     ]
 
 
-class _Impact(eqx.Module):
-    """Impact of constraint `k` in contact set `A` with release candidate `R`, on the constraint
-    indices `order` (A's, then k); static description, functions of (t, x, args)."""
-
-    # Static: a transition's reset is this object, part of the system's pytree; the scene
-    # (callables) and the Python indices choose the code traced.
-    scene: Scene = eqx.field(static=True)
-    source: tuple = eqx.field(static=True)  # sorted indices of A
-    k: int = eqx.field(static=True)
-    candidates: tuple = eqx.field(static=True)  # release sets, each a sorted tuple
-    least_norm: bool = eqx.field(static=True)
-
-    @property
-    def order(self):
-        return self.source + (self.k,)
-
-    def fns(self):
-        return rows(self.scene, self.order)[0]
-
-    def _e(self, args, dtype):
-        e_k = self.scene.constraints[self.k].coefficient(args)
-        num_rows = len(self.fns())
-        return jnp.zeros(num_rows, dtype).at[len(self.order) - 1].set(jnp.asarray(e_k, dtype))
-
-    def held(self, c, dtype):
-        """The held rows of candidate `c` (the released constraints' rows are 0)."""
-        release = self.candidates[c]
-        return jnp.asarray([0.0 if i in release else 1.0 for i in rows(self.scene, self.order)[1]], dtype)
-
-    def outcome(self, c, t, x, args):
-        n = self.scene.dim
-        q, dq = x[:n], x[n:]
-        return impact(
-            self.scene,
-            self.fns(),
-            self.held(c, x.dtype),
-            self._e(args, x.dtype),
-            t,
-            q,
-            dq,
-            args,
-            self.least_norm,
-        )
-
-    def select(self, t, x, args):
-        """The index of the first candidate that solves the impact, -1 if none
-        (`mechanics.release_choice`)."""
-        n, dtype = self.scene.dim, x.dtype
-        num_rows = len(self.fns())
-        kin = kinematics(self.scene, self.fns(), t, x[:n], x[n:], args)
-        held = jnp.stack([self.held(c, dtype) for c in range(len(self.candidates))])
-        # The unilateral constraints' gap rows: a joint's impulse has either sign.
-        gap_rows = jnp.asarray([r < len(self.order) and self.scene.constraints[o].kind == UNILATERAL
-                                for r, o in enumerate(rows(self.scene, self.order)[1])])
-        return release_choice(kin, held, self._e(args, dtype), jnp.ones(num_rows, bool), gap_rows,
-                              self.least_norm)
-
-    def choice(self) -> ReleaseChoice:
-        """`select` on the rows of all the scene's constraints, for `ContactEvaluation`."""
-        K = len(self.scene.constraints)
-        _, owners = rows(self.scene, range(K))
-        # The rows of `order` in `select`'s order (gaps of `order`, then their tangents), as
-        # indices into all the rows: the independence test's pivots depend on the order.
-        _, own = rows(self.scene, self.order)
-        index = [o if r < len(self.order) else K + owners[K:].index(o) for r, o in enumerate(own)]
-        return ReleaseChoice(
-            held=tuple(tuple(float(o in self.order and o not in R) for o in owners) for R in self.candidates),
-            hit=self.k,
-            involved=tuple(index),
-            gap_rows=tuple(
-                o in self.order and r < K and self.scene.constraints[o].kind == UNILATERAL
-                for r, o in enumerate(owners)
-            ),
-        )
-
-    def guard(self, chosen: tuple):
-        """a_k (`mechanics.impact_gaps`: max(a_k, -c_k) for an armed contact) where the selected
-        candidate is in `chosen`, positive elsewhere."""
-        n, k = self.scene.dim, self.k
-
-        def gap(t, x, args):
-            q = x[:n]
-            return impact_gaps(self.scene, t, q, args, constraint_gaps(self.scene, t, q, args))[k]
-
-        if set(range(len(self.candidates))) <= set(chosen):
-            return gap
-
-        def g(t, x, args):
-            a = gap(t, x, args)
-            # Which outcome holds is a discrete choice: no derivative flows through it.
-            sel = self.select(*jax.lax.stop_gradient((t, x, args)))
-            return selection_guard(a, jnp.any(jnp.stack([sel == c for c in chosen] + [False])))
-
-        return g
-
-    def slot(self, chosen: tuple) -> SlotSpec:
-        """`guard(chosen)` as `ContactEvaluation` reads it."""
-        if set(range(len(self.candidates))) <= set(chosen):
-            return SlotSpec(GAP, self.k)
-        return SlotSpec(SELECTED, self.k, choice=self.choice(), chosen=chosen)
-
-    def reset(self, c):
-        n = self.scene.dim
-
-        def r(t, x, args):
-            dq_plus, _, _ = self.outcome(c, t, x, args)
-            return jnp.concatenate([x[:n], dq_plus])
-
-        return r
-
-    def target(self, c) -> frozenset:
-        held = (set(self.source) | {self.k}) - set(self.candidates[c])
-        if self.scene.constraints[self.k].restitutes:
-            held.discard(self.k)
-        return frozenset(held)
-
-
-class _ModeFunctions(eqx.Module):
-    """Flow and contact forces of contact set `held` (sorted indices), solved with the held
-    constraints only (the mode's own functions; `ContactEvaluation` solves with all rows,
-    masked, for a traced mode)."""
-
-    # Static: a mode's flow is this object, part of the system's pytree; callables and indices.
-    scene: Scene = eqx.field(static=True)
-    held: tuple = eqx.field(static=True)
-    least_norm: bool = eqx.field(static=True)
-
-    def solve(self, t, x, args):
-        n = self.scene.dim
-        fns, _ = rows(self.scene, self.held)
-        mask = jnp.ones(len(fns), x.dtype)
-        return constrained_acceleration(self.scene, fns, mask, t, x[:n], x[n:], args, self.least_norm)
-
-    def flow(self, t, x, args):
-        ddq, _ = self.solve(t, x, args)
-        return jnp.concatenate([x[self.scene.dim :], ddq])
-
-    def force(self, j, offset=0.0):
-        """lambda_j + offset, the force of held constraint j (a lift-off guard)."""
-        pos = self.held.index(j)
-        return lambda t, x, args: self.solve(t, x, args)[1][pos] + offset
-
-
 def _terminal_flow(t, x, args):
     return jnp.zeros_like(x)
 
 
 def _terminal_domain(t, x, args):
     return -jnp.ones((), x.dtype)
-
-
-# ----------------------------------------------------------------------------- search queries
-
-
-class _Query(eqx.Module):
-    """The conditions of one search as masks over the K constraints (all arrays, so that one
-    compiled search checks every query of a level under `vmap`)."""
-
-    held: Array  # source set A
-    lift: Array  # one-hot lift-off constraint (or zeros)
-    hit: Array  # one-hot impacting constraint (or zeros)
-    impact_held: Array  # C less the released constraints (zeros for a lift-off)
-    released: Array  # the released constraints
-    flowing: Array  # scalar 1: lambda_A >= 0 required (impacts)
-
-
-@functools.cache
-def _query_functions(scene: Scene, margin: float, least_norm: bool):
-    """The equalities and inequalities of every query (cached: later builds of one scene, with
-    other `args`, reuse the compiled search)."""
-    K, n = len(scene.constraints), scene.dim
-    fns, owners = rows(scene, range(K))
-    unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
-
-    def parts(t, x, p):
-        args, Q = p
-        q, dq = x[:n], x[n:]
-        held_rows = _row_mask(owners, Q.held, x.dtype)
-        kin = kinematics(scene, fns, t, q, dq, args)
-        a, adot = kin.gap, kin.adot
-        open_gap = impact_gaps(scene, t, q, args, a)
-        armed = armed_values(scene, t, q, args)
-        _, lam = acceleration(kin, held_rows, least_norm)
-        e = jnp.stack([jnp.asarray(c.coefficient(args), x.dtype) for c in scene.constraints]) * Q.hit
-        e = jnp.concatenate([e, jnp.zeros(len(fns) - K, x.dtype)])
-        impact_rows = _row_mask(owners, Q.impact_held, x.dtype)
-        _, P, rates = impact_map(kin, impact_rows, e, least_norm)
-        a, adot_gap, lam, P, rates = a[:K], adot[:K], lam[:K], P[:K], rates[:K]
-        uni = jnp.asarray(unilateral, x.dtype)
-        eq = jnp.concatenate([Q.held * a, held_rows * adot, Q.hit * a])
-        adot = adot_gap
-        one = jnp.ones_like(a)
-        ineq = [
-            jnp.where((uni * (1 - Q.held) * (1 - Q.hit)) > 0, open_gap, one),
-            jnp.where(Q.hit > 0, armed, one),
-            jnp.where((uni * Q.held * Q.flowing) > 0, lam, one),
-            jnp.where(Q.lift > 0, -lam - margin, one),
-            jnp.where(Q.hit > 0, -adot - margin, one),
-            jnp.where(Q.impact_held * uni > 0, P, one),
-            jnp.where(Q.released > 0, rates, one),
-        ]
-        ineq = jnp.concatenate(ineq)
-        # A singular contact system (dependent constraints at a sample) gives non-finite values:
-        # they count as violated, and finite.
-        eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
-        return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
-
-    return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
-
-
-def _run_queries(scene, queries, args_batch, samples, margin, least_norm, search):
-    """find_point for every (query, args value): Witness with leading axes (Q, V)."""
-    eq, ineq = _query_functions(scene, margin, least_norm)
-    return run_search(eq, ineq, queries, args_batch, samples, search)
 
 
 # Queries per call of the compiled search: every call has this many (the last one padded), so a
@@ -794,6 +597,57 @@ def _set_fields(system, modes, transitions, **fields) -> None:
     validate_system(system)
 
 
+def state_names(scene: Scene) -> tuple[str, ...]:
+    """The names of the state's components: the coordinates' names (or `q[i]`), then `d<name>`."""
+    names = scene.names or tuple(f"q[{i}]" for i in range(scene.dim))
+    return tuple(names) + tuple(f"d{s}" for s in names)
+
+
+@dataclasses.dataclass
+class Assembly:
+    """A build's modes and transitions as a builder adds them: per transition its slot and
+    reset (as the builder's mode-indexed evaluation reads them), the report's achievable and
+    pruned lines, and the terminal modes named so far (added after the built ones)."""
+
+    scene: Scene
+    modes: list
+    transitions: list = dataclasses.field(default_factory=list)
+    slots: list = dataclasses.field(default_factory=list)
+    resets: list = dataclasses.field(default_factory=list)
+    achievable: list = dataclasses.field(default_factory=list)
+    pruned: list = dataclasses.field(default_factory=list)
+    terminals: dict = dataclasses.field(default_factory=dict)
+
+    def add(self, transition: Transition, slot: Any, reset: Any) -> None:
+        self.transitions.append(transition)
+        self.slots.append(slot)
+        self.resets.append(reset)
+
+    def terminal(self, name: str) -> str:
+        """`name` as a terminal mode (each added once)."""
+        self.terminals[name] = None
+        return name
+
+    def close(self) -> None:
+        """Add the terminal modes: no flow, an empty domain (the execution ends `BLOCKED`)."""
+        comp = state_names(self.scene)
+        for term in self.terminals:
+            self.modes.append(Mode(term, _terminal_flow, dim=2 * self.scene.dim, domain=_terminal_domain,
+                                   names=comp))  # fmt: skip
+
+    def mode_slots(self, constant: Any) -> tuple:
+        """The slots in the engines' order: each mode's transitions in index order, then a
+        terminal mode's one domain component (`constant`)."""
+        names = [m.name for m in self.modes]
+        sources = [names.index(tr.source) for tr in self.transitions]
+        num_built = len(self.modes) - len(self.terminals)
+        return tuple(
+            tuple(self.slots[i] for i, m_ in enumerate(sources) if m_ == m)
+            + ((constant,) if m >= num_built else ())
+            for m in range(len(self.modes))
+        )
+
+
 class ContactSystem(AbstractContactSystem):
     """The hybrid system of a `Scene`, built by `contact_system`: an `AbstractHybridSystem`
     (every tool works on it, as on a `HybridSystem`) whose modes are contact sets, with what the
@@ -869,381 +723,3 @@ def witness_text(w, i: int, n: int) -> str:
     v = int(np.argmax(found_v))
     where = "" if found_v.all() else f", only for args_values {[int(a) for a in np.flatnonzero(found_v)]}"
     return f"witness t={w.t[i, v]:.3g}, q={_fmt(w.x[i, v, :n])}, dq={_fmt(w.x[i, v, n:])}{where}"
-
-
-def contact_system(
-    scene: Scene,
-    initial: Sequence,
-    args: Any = None,
-    *,
-    args_values: Sequence | None = None,
-    num_samples: int = 512,
-    margin: float = 1e-3,
-    key: PRNGKeyArray | None = None,
-    redundant: str = "error",
-    form: str = "mask",
-    max_modes: int = 64,
-    relabels: Sequence[Relabel] = (),
-    search: SearchOptions | None = None,
-    **shorthands,
-) -> AbstractContactSystem:
-    r"""Build the hybrid system of `scene`, with only the contact sets it reaches.
-
-    Starting from the `initial` contact sets, each transition out of a built set (an impact of
-    each open contact with each release candidate, a lift-off of each held contact) is kept
-    when the point search finds a witness state in its guard for one of the `args` values
-    (see the module notes for the conditions); its target set is then built too. What is
-    never found is pruned and listed, with the reason, in the repr; a pruned transition still
-    fires into a terminal mode `"unbuilt: <set>"` that ends the execution with `BLOCKED`.
-
-    **Arguments:**
-
-    - `scene`: the `Scene`.
-    - `initial`: the initial contact sets, each a sequence of constraint names or a mode name
-      (`"free"`, `"G+H"`); bilateral constraints are always held.
-    - `args`: the scene's `args`; or `args_values`: a sequence of them (a slope angle's values,
-      or samples of its range) to build over: a transition found for any of them is kept, and
-      the repr says for which. A batch or a derivative across values that change the modes
-      built needs a system built over all of them.
-    - `num_samples`, `key`: the point search's samples, drawn in the scene's `bounds` x
-      `t_bounds` (`key` a `jax.random` key, default `jax.random.key(0)`).
-    - `margin`: the least approach speed of an impact and the least pulling force of a
-      lift-off that a witness must show, in the scene's units.
-    - `redundant`: `"error"` (a reachable contact set with dependent constraints raises,
-      naming them) or `"least_norm"` (its contact forces are the least-norm solution).
-    - `form`: `"mask"` (the default: the engines evaluate the system for the current mode in
-      one solve with all constraints, those not held masked out, `ContactEvaluation`; the
-      cost of a step and of its compile does not grow with the modes built) or `"branch"`
-      (each mode's and each transition's own function, evaluated and selected under
-      `jax.vmap`: every mode's solve in every step). Both give the same executions to
-      rounding; the mask is faster to compile and to run (docs: Scenes, "What it costs").
-      Scenes with friction too (`FrictionEvaluation`).
-    - `max_modes`: a build that would exceed this many modes stops with an error.
-    - `relabels`: `Relabel`s identifying symmetric contact sets (a transition into a `source`
-      set goes to its `target` set, the state relabelled).
-    - `search`: an `hj.SearchOptions` (`num_starts`, `iterations`, `tol`: how the best samples
-      are refined, the violation accepted as zero), as in `find_point`.
-
-    **Keyword shorthands** (passing one with the name it stands for is a `ValueError`):
-    `seed=s` for `key=jax.random.key(s)`; `num_starts`, `iterations` (or `max_steps`), `tol`
-    for `search=hj.SearchOptions(...)` with them.
-
-    !!! Example
-
-        ```python
-        system = hj.contact_system(scene, initial=["free"], args={"g": 9.81})
-        system              # modes, transitions, witnesses, and what was pruned and why
-        sol = hj.simulate(system, x0, "free", 0.0, 2.0, {"g": 9.81})
-        system.contact_forces(sol)
-        ```
-    """
-    search = search_options("contact_system", search, shorthands)
-    unknown = sorted(set(shorthands) - {"seed"})
-    if unknown:
-        raise TypeError(f"contact_system() got an unexpected keyword argument {unknown[0]!r}.")
-    key = point_search_key(key, shorthands.get("seed"))
-    if redundant not in ("error", "least_norm"):
-        raise ValueError(f"contact_system: `redundant` must be 'error' or 'least_norm', got {redundant!r}.")
-    if form not in ("branch", "mask"):
-        raise ValueError(f"contact_system: `form` must be 'branch' or 'mask', got {form!r}.")
-    if any(c.friction is not None for c in scene.constraints):
-        from .._scenes.friction import friction_system
-
-        return friction_system(
-            scene, initial, args, args_values=args_values, num_samples=num_samples, search=search,
-            margin=margin, key=key, redundant=redundant, max_modes=max_modes, relabels=relabels,
-            form=form,
-        )  # fmt: skip
-    values = list(args_values) if args_values is not None else [args]
-    if not values:
-        raise ValueError("contact_system: `args_values` is empty.")
-    for v in values:
-        scene.check(v)
-    least_norm = redundant == "least_norm"
-    K, n = len(scene.constraints), scene.dim
-    dtype = jnp.result_type(float)
-    unilateral = {i for i, c in enumerate(scene.constraints) if c.kind == UNILATERAL}
-    args_batch = (
-        jnp.arange(len(values)),
-        jtu.tree_map(lambda *v: jnp.stack([jnp.asarray(x, dtype) for x in v]), *values),
-    )
-
-    pts = box_samples(key, tuple(sample_box(scene, dtype)), num_samples)
-    samples = (pts[:, -1], pts[:, :-1])
-
-    def onehot(idx):
-        return jnp.asarray([1.0 if i in idx else 0.0 for i in range(K)], dtype)
-
-    def query(A, lift=(), hit=(), impact_held=(), released=(), flowing=0.0):
-        return _Query(
-            onehot(A),
-            onehot(lift),
-            onehot(hit),
-            onehot(impact_held),
-            onehot(released),
-            jnp.asarray(flowing, dtype),
-        )
-
-    def witnesses(qs):
-        return _run_queries(scene, qs, args_batch, samples, margin, least_norm, search)
-
-    # Initial sets: a consistent state (held gaps and rates 0, the others open), where the held
-    # constraints are independent (or `redundant="least_norm"`).
-    initial_sets = list(dict.fromkeys(_as_set(scene, s) for s in initial))
-    if not initial_sets:
-        raise ValueError("contact_system: give at least one initial contact set.")
-    w = witnesses([query(A) for A in initial_sets])
-    built: dict[frozenset, bool] = {}  # set -> least-norm
-    report: list[str] = []
-    for i, A in enumerate(initial_sets):
-        if not w.found[i].any():
-            raise ValueError(
-                f"contact_system: the initial contact set {set_name(scene, A)} has no consistent state "
-                "in the scene's ranges (held gaps and rates 0, the other contacts open; least violation "
-                f"{np.nanmin(w.violation[i]):.2g}, infinite where the held constraints are dependent)."
-            )
-        v = int(np.argmax(w.found[i]))
-        fns, owners = rows(scene, range(K))
-        held_rows = _row_mask(owners, onehot(A), dtype)
-        ratio = independence(scene, fns, held_rows, w.t[i, v], jnp.asarray(w.x[i, v, :n]), values[v])
-        if ratio <= _INDEPENDENT and not least_norm:
-            names = [scene.constraints[j].name for j in sorted(A)]
-            raise ValueError(
-                f"contact_system: the initial contact set {set_name(scene, A)} has dependent constraints "
-                f"{names} (redundant contacts); pass redundant='least_norm' for least-norm contact "
-                "forces, or remove one of them."
-            )
-        built[A] = least_norm
-
-    relabel_of = {}
-    for r in relabels:
-        if not isinstance(r, Relabel):
-            raise TypeError(f"contact_system: relabels must be hybridjax.Relabel, got {type(r).__name__}.")
-        relabel_of[_as_set(scene, r.source)] = (_as_set(scene, r.target), r.state_map(n))
-
-    def canonical(T):
-        return relabel_of.get(T, (T, None))
-
-    impacts: dict[tuple, _Impact] = {}
-    outcomes: dict[tuple, list] = {}  # (A, kind, j) -> per candidate: (c, target, found, text)
-    frontier = list(built)
-    while frontier:
-        qs, keys = [], []
-        for A in frontier:
-            for k in sorted(unilateral - A):
-                # A candidate with more rows than coordinates is dependent wherever it is: it
-                # can hold only with least-norm impulses.
-                releases = tuple(
-                    tuple(sorted(r))
-                    for r in _releases(A & unilateral)
-                    if least_norm or len(rows(scene, sorted((A | {k}) - r))[0]) <= n
-                )
-                imp = _Impact(scene, tuple(sorted(A)), k, releases, least_norm)
-                impacts[(A, k)] = imp
-                for c, R in enumerate(imp.candidates):
-                    held = (A | {k}) - set(R)
-                    qs.append(query(A, hit={k}, impact_held=held, released=set(R), flowing=1.0))
-                    keys.append((A, "impact", k, c, imp.target(c)))
-            for j in sorted(A & unilateral):
-                qs.append(query(A, lift={j}))
-                keys.append((A, "lift-off", j, 0, A - {j}))
-        frontier = []
-        if not qs:
-            break
-        w = witnesses(qs)
-        for i, (A, kind, j, c, T) in enumerate(keys):
-            found_v = w.found[i]
-            if found_v.any():
-                text = witness_text(w, i, n)
-                T = canonical(T)[0]
-                if T not in built:
-                    if len(built) >= max_modes:
-                        raise ValueError(
-                            f"contact_system: more than max_modes={max_modes} contact sets reached."
-                        )
-                    built[T] = least_norm
-                    frontier.append(T)
-                outcomes.setdefault((A, kind, j), []).append((c, T, True, text))
-            else:
-                least = float(
-                    np.nanmin(np.where(np.isfinite(w.violation[i]), w.violation[i], np.nan), initial=np.inf)
-                )
-                why = (
-                    f"no state of the source set found in the guard (least violation {least:.2g})"
-                    if np.isfinite(least)
-                    else "the contact equations are singular (dependent constraints) at every state tried"
-                )
-                outcomes.setdefault((A, kind, j), []).append((c, T, False, why))
-
-    # Assemble: built modes, then terminal modes for unbuilt targets.
-    order = list(built)
-    modes, transitions, achievable = [], [], []
-    mode_fns = {A: _ModeFunctions(scene, tuple(sorted(A)), built[A]) for A in order}
-    # Per transition, in order: its watched function and reset as `ContactEvaluation` reads them.
-    slot_specs, reset_specs = [], []
-    relabel_maps = list(dict.fromkeys(m for _, m in relabel_of.values()))
-
-    def spec(slot, held=None, hit=0, relabel_map=None):
-        slot_specs.append(slot)
-        r = -1 if relabel_map is None else relabel_maps.index(relabel_map)
-        reset_specs.append(ResetSpec(None if held is None else tuple(sorted(held)), hit, r))
-
-    names = scene.names or tuple(f"q[{i}]" for i in range(n))
-    comp = tuple(names) + tuple(f"d{s}" for s in names)
-    for A in order:
-        modes.append(Mode(set_name(scene, A), mode_fns[A].flow, dim=2 * n, names=comp))
-    terminals: dict[str, None] = {}
-    pruned_lines = []
-    for A in order:
-        src = set_name(scene, A)
-        for (A_, kind, j), items in outcomes.items():
-            if A_ != A:
-                continue
-            cname = scene.constraints[j].name
-            if kind == "impact":
-                imp = impacts[(A, j)]
-                chosen = tuple(c for c, _, ok, _ in items if ok)
-                for c, T, ok, text in items:
-                    if ok:
-                        tgt, relabel_map = canonical(imp.target(c))
-                        via = (
-                            ""
-                            if relabel_map is None
-                            else f" (relabelled from {set_name(scene, imp.target(c))})"
-                        )
-                        transitions.append(
-                            Transition(
-                                src,
-                                set_name(scene, tgt),
-                                guard=imp.guard((c,)),
-                                reset=_then(imp.reset(c), relabel_map),
-                                name=f"impact {cname}: {src} -> {set_name(scene, tgt)}",
-                            )
-                        )
-                        held = (set(imp.source) | {j}) - set(imp.candidates[c])
-                        spec(imp.slot((c,)), held=held, hit=j, relabel_map=relabel_map)
-                        achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
-                    else:
-                        released = [scene.constraints[i].name for i in imp.candidates[c]]
-                        rel = f" releasing {'+'.join(released)}" if released else ""
-                        pruned_lines.append(
-                            f"  pruned: impact of {cname} in {src}{rel} -> {set_name(scene, T)}: {text}"
-                        )
-                if len(chosen) < len(items):
-                    T0 = imp.target(0)
-                    term = UNBUILT + set_name(scene, T0)
-                    terminals[term] = None
-                    # With the candidates not found, the impact that no candidate solves (-1).
-                    others = tuple(c for c in range(len(imp.candidates)) if c not in chosen) + (-1,)
-                    transitions.append(
-                        Transition(
-                            src, term, guard=imp.guard(others), name=f"impact {cname}: {src} -> {term}"
-                        )
-                    )
-                    spec(imp.slot(others))
-                elif len(chosen) > 1:
-                    # Every candidate was found, so each transition reads the choice: an impact that
-                    # no candidate solves (dependent constraints, or rounding at a tie) stops the
-                    # execution there, naming it, rather than pass through the constraint.
-                    term = f"{INCONSISTENT}impact of {cname} in {src}"
-                    terminals[term] = None
-                    transitions.append(
-                        Transition(src, term, guard=imp.guard((-1,)), name=f"impact {cname}: {term}")
-                    )
-                    spec(imp.slot((-1,)))
-            else:
-                c, T, ok, text = items[0]
-                if ok:
-                    tgt, relabel_map = canonical(T)
-                    via = "" if relabel_map is None else f" (relabelled from {set_name(scene, T)})"
-                    transitions.append(
-                        Transition(
-                            src,
-                            set_name(scene, tgt),
-                            guard=mode_fns[A].force(j),
-                            reset=_then(_identity, relabel_map),
-                            name=f"lift-off {cname}: {src} -> {set_name(scene, tgt)}",
-                        )
-                    )
-                    spec(SlotSpec(FORCE, j), relabel_map=relabel_map)
-                    achievable.append((src, set_name(scene, tgt) + via, kind, cname, text))
-                else:
-                    term = UNBUILT + set_name(scene, T)
-                    terminals[term] = None
-                    transitions.append(
-                        Transition(
-                            src,
-                            term,
-                            # The search found no state with lambda_j <= -margin; a force between
-                            # that and 0 (a contact that carries none, such as a wall beside a
-                            # resting point, whose force is 0 up to rounding) stays held.
-                            guard=mode_fns[A].force(j, margin),
-                            name=f"lift-off {cname}: {src} -> {term}",
-                        )
-                    )
-                    spec(SlotSpec(FORCE, j, margin))
-                    pruned_lines.append(
-                        f"  pruned: lift-off of {cname} in {src} -> {set_name(scene, T)}: {text}"
-                    )
-    for term in terminals:
-        modes.append(Mode(term, _terminal_flow, dim=2 * n, domain=_terminal_domain, names=comp))
-
-    candidates = {T for items in outcomes.values() for _, T, _, _ in items} | set(built)
-    candidates -= set(relabel_of) - set(built)
-    unreached = sorted(candidates - set(built), key=lambda s: (len(s), sorted(s)))
-    report.append(
-        f"contact sets built: {len(built)} of 2^{len(unilateral)} = {2 ** len(unilateral)} "
-        f"({', '.join(set_name(scene, A) for A in order)})"
-    )
-    for src, tgt, kind, cname, text in achievable:
-        report.append(f"  achievable: {kind} of {cname}: {src} -> {tgt}; {text}")
-    report.extend(pruned_lines)
-    for T in unreached:
-        report.append(f"  pruned set {set_name(scene, T)}: no achievable transition into it was found")
-    never = 2 ** len(unilateral) - len(candidates)
-    if never > 0:
-        report.append(
-            f"  {never} other contact sets: not adjacent to a built set (no transition leads there)"
-        )
-    if len(values) > 1:
-        report.append(
-            f"  built over {len(values)} args values: a batch or a derivative across values "
-            "that change the transitions found needs a system built over all of them"
-        )
-    if any(built[A] for A in order):
-        report.append(
-            "  least-norm contact forces in: " + ", ".join(set_name(scene, A) for A in order if built[A])
-        )
-
-    contact_sets = tuple(tuple(scene.constraints[i].name for i in sorted(A)) for A in order)
-    contact_sets = contact_sets + (None,) * len(terminals)
-    evaluation = None
-    if form == "mask":
-        # Slots in the engine's order: each mode's transitions in index order, then a terminal
-        # mode's one domain component (-1).
-        names = [m.name for m in modes]
-        sources = [names.index(tr.source) for tr in transitions]
-        slots = [
-            tuple(slot_specs[i] for i, m_ in enumerate(sources) if m_ == m)
-            + ((SlotSpec(CONSTANT, offset=-1.0),) if m >= len(order) else ())
-            for m in range(len(modes))
-        ]
-        evaluation = ContactEvaluation(
-            scene=scene,
-            mode_sets=tuple(tuple(sorted(A)) for A in order) + (None,) * len(terminals),
-            slots=tuple(slots),
-            resets=tuple(reset_specs),
-            relabel_maps=tuple(relabel_maps),
-            least_norm=least_norm,
-        )
-    return ContactSystem(
-        modes,
-        transitions,
-        scene=scene,
-        contact_sets=contact_sets,
-        least_norm_modes=tuple(built[A] for A in order) + (False,) * len(terminals),
-        report=tuple(report),
-        achievable=tuple(achievable),
-        form=form,
-        evaluation=evaluation,
-    )
