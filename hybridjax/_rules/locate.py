@@ -48,7 +48,7 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
     ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
     cands = xp + jnp.array([64.0, 16.0, 4.0], xp.dtype) * ulp
-    f_cands = [f(cands[i]) for i in range(3)]
+    f_cands = lax.map(f, cands)  # one evaluation of f in the program, run three times
     out = b
     for i in range(3):  # the last one written wins: the first good one
         cand = cands[i]
@@ -63,7 +63,8 @@ def root_bracket(f, a, b, tol, max_iter: int = 64):
     a, b, tol = lax.stop_gradient((a, b, tol))
     # Each point its own evaluation: `jax.vmap(f)` over a few points makes the interpolant's
     # small matrix product a batched one, 1.5x slower for one execution and no faster for many.
-    fa, fb = f(a), f(b)
+    # `lax.map` evaluates them one after the other from one copy of f in the program.
+    fa, fb = lax.map(f, jnp.stack([a, b]))
     denom = fa - fb
     x0 = jnp.where(denom > 0, a + (b - a) * fa / jnp.where(denom > 0, denom, 1.0), 0.5 * (a + b))
     x0 = jnp.clip(x0, a, b)
@@ -303,7 +304,7 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
-        g_at, g_from = values_at(t_at), values_at(a[first])
+        g_at, g_from = lax.map(values_at, jnp.stack([t_at, a[first]]))
         cand = simultaneous_set(has, tk, t_min, tol, g_at, g_from)
         i, simultaneous = resolve_simultaneous(cand)
         tk = jnp.where(cand & ~has, t_min, tk)
