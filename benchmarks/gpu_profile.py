@@ -68,6 +68,39 @@ def region(op_name: str, depth: int) -> str:
     return "/".join([t for t in op_name.split("/") if t.startswith(CONTROL)][:depth]) or "(top)"
 
 
+def device_timeline(events: list) -> dict:
+    """The device's side of a trace: per stream-event kind (kernels, copies, sets) the count and
+    time, the time the device was busy (union of its events' spans) and the gaps between them.
+
+    Device events are those of a trace process named after the accelerator (`/device:GPU:0`);
+    on a CPU there are none. A gap is idle device time inside the run: kernel launches, and the
+    host's reads of each conditional's predicate and each while loop's condition."""
+    names = {e["pid"]: (e.get("args") or {}).get("name", "") for e in events
+             if e.get("ph") == "M" and e.get("name") == "process_name"}
+    dev = [e for e in events if e.get("ph") == "X" and "GPU" in names.get(e.get("pid"), "")]
+    kinds = collections.Counter()
+    times = collections.Counter()
+    for e in dev:
+        low = e["name"].lower()
+        kind = "memcpy" if "memcpy" in low else "memset" if "memset" in low else "kernel"
+        kinds[kind] += 1
+        times[kind] += e.get("dur", 0) * 1e-6
+    spans = sorted((e["ts"], e["ts"] + e.get("dur", 0)) for e in dev)
+    busy, gaps, gap_s, end = 0.0, 0, 0.0, None
+    for a, b in spans:
+        if end is not None and a > end:
+            gaps += (a - end) > 5
+            gap_s += (a - end) * 1e-6
+        if end is None or a > end:
+            busy += (b - a) * 1e-6
+        elif b > end:
+            busy += (b - end) * 1e-6
+        end = b if end is None else max(end, b)
+    first = spans[0][0] if spans else 0.0
+    return dict(processes=sorted(set(names.values())), count=dict(kinds), seconds=dict(times), busy_s=busy, gaps_over_5us=gaps, gap_s=gap_s,
+                span_s=((end or 0.0) - first) * 1e-6)
+
+
 def profile(fn, x, m, depth: int) -> dict:
     jax.block_until_ready(fn(x, m))
     best = float("inf")
@@ -98,6 +131,7 @@ def profile(fn, x, m, depth: int) -> dict:
         calls[op] += 1
     kernels_s = sum(by_op.values()) * 1e-6
     return dict(
+        device=device_timeline(events),
         run_s=best,
         kernels_s=kernels_s,
         kernel_calls=sum(calls.values()),
@@ -121,6 +155,7 @@ def main():
         r = res["ways"][name] = profile(fn, x, m, a.depth)
         print(f"{name}: run {r['run_s'] * 1e3:.1f} ms, kernels {r['kernels_s'] * 1e3:.1f} ms "
               f"({r['kernel_calls']} calls)")
+        print(f"  device: {r['device']}")
         for k, v in list(r["regions"].items())[:12]:
             print(f"  {v * 1e3:9.2f} ms  {k}")
     out = pathlib.Path(a.out)

@@ -296,6 +296,23 @@ def test_event_brackets_turn_a_dip_into_a_bracket():
     assert float(ev.t_star) == pytest.approx(1.4, abs=1e-12) and int(ev.index) == 0
 
 
+def test_the_minimum_search_runs_only_for_dip_candidates():
+    # Guard 0 dips below zero between samples 1 and 2 (found at the first Newton point); guard 1,
+    # 5 - x, has no candidate. Its search would halve [1, 2] to 1e-12 (~32 iterations); with the
+    # empty bracket it does not run, and the loop over both stops after guard 0's one iteration.
+    calls = []
+
+    def values_at(x):
+        jax.debug.callback(lambda: calls.append(1))
+        return jnp.stack([(x - 1.5) ** 2 - 0.01, 5.0 - x])
+
+    det = R.Detection(jnp.array([False, False]), jnp.array([0, 0]), jnp.array([True, False]),
+                      jnp.array([1, 1]), jnp.array([1.5, 1.2]))
+    br = jax.jit(lambda d: R.event_brackets(values_at, d, jnp.array([0.0, 1.0, 2.0]), 1e-12))(det)
+    assert np.array_equal(br.has, [True, False]) and float(br.b[0]) == 1.5
+    assert 1 <= len(calls) <= 2
+
+
 def _first_event_of(*offsets, has=None):
     # Guards 1 + o - x, crossing at 1 + o, each bracketed by [0, 2].
     o = jnp.asarray(offsets)

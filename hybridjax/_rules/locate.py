@@ -171,7 +171,9 @@ class AbstractEventLocator(eqx.Module):
     def minimum(self, f: Callable, a, b, x0, tol):
         """`(x, f(x))` at the lowest point found of f on [a, b] (f' < 0 at a, > 0 at b), starting
         from `x0`; it may stop at the first x with f(x) < 0 (a crossing proven), or when the
-        bracket is narrower than `tol`. A dip below zero that this misses is not an event."""
+        bracket is narrower than `tol`. A dip below zero that this misses is not an event.
+        The engines call it for every watched function at once: one without a dip candidate
+        gets the empty bracket `a == b`, and its result is not used."""
 
 
 class BracketedNewton(AbstractEventLocator):
@@ -223,7 +225,13 @@ def event_brackets(values_at: Callable, det: Detection, s_ext, tol,
         def lowest(k, a_k, b_k, x_k):
             return locator.minimum(lambda x: values_at(x)[k], a_k, b_k, x_k, tol)
 
-        return jax.vmap(lowest)(jnp.arange(has.shape[0]), s_ext[i_d], s_ext[i_d + 1], x0_d)
+        # A function without a candidate gets the empty bracket [a, a]: its search stops at
+        # once, where on its sample interval it would run to `max_iter` (f' need not change
+        # sign there) and hold every other search's loop open that long (under `jax.vmap`, a
+        # while loop runs until its last element is done).
+        a_d = s_ext[i_d]
+        b_d = jnp.where(suspect, s_ext[i_d + 1], a_d)
+        return jax.vmap(lowest)(jnp.arange(has.shape[0]), a_d, b_d, x0_d)
 
     x_min, g_min = lax.cond(
         eqxi.unvmap_any(jnp.any(suspect)), refine, lambda _: (x0_d, jnp.ones_like(x0_d)), None
