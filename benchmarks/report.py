@@ -668,11 +668,37 @@ def gpu_throughput(res: dict) -> list[str]:
     for i, run in enumerate(runs):
         rm = run["machine"]
         commit = f", hybridjax at commit {run['commit']}" if run.get("commit") else ""
+        flags = f", `XLA_FLAGS={rm['xla_flags']}`" if rm.get("xla_flags") else ""
         out += [f"## Run {i + 1}: {rm.get('device_kind', rm['device'])}, jax {rm['jax']}{commit}, best of "
-                f"{run['rounds']}", ""]
+                f"{run['rounds']}{flags}", ""]
         out += _gpu_table(run["rows"])
     out += [f"![executions per second against N]({_plot_gpu_throughput(res)})", ""]
+    profile = RESULTS / "gpu_profile.json"
+    if profile.exists():
+        out += _gpu_timeline(json.loads(profile.read_text()))
     return out
+
+
+def _gpu_timeline(prof: dict) -> list[str]:
+    """The device's timeline of one traced run per way (`benchmarks/gpu_profile.py`)."""
+    m = prof["machine"]
+    out = ["## Where the device time goes", "",
+           f"One traced run of N = {prof['n']:,} on one {m.get('device_kind', m['device'])} "
+           "(`python benchmarks/gpu_profile.py`): the device's busy time (the union of its kernels and "
+           "copies), its kernels' and copies' time and count, and its idle time between them inside the run "
+           "(kernel launches, the host's reads of the loops' conditions). A way whose busy time is close to "
+           "its run time is limited by the work of its kernels, not by launches or synchronisation.", ""]
+    body = []
+    for name, w in prof["ways"].items():
+        dv = w.get("device")
+        if not dv or not dv.get("busy_s"):
+            continue
+        sec, cnt = dv["seconds"], dv["count"]
+        body.append([name, f"{w['run_s'] * 1e3:.1f}", f"{dv['busy_s'] * 1e3:.1f}",
+                     f"{sec.get('kernel', 0) * 1e3:.1f} ({cnt.get('kernel', 0):,})",
+                     f"{sec.get('memcpy', 0) * 1e3:.1f} ({cnt.get('memcpy', 0):,})", f"{dv['gap_s'] * 1e3:.1f}"])
+    return out + _table(["way", "run (ms)", "device busy (ms)", "kernels (ms, count)", "copies (ms, count)",
+                         "idle (ms)"], body)
 
 
 def _gpu_table(rows: dict) -> list[str]:
