@@ -115,8 +115,12 @@ def profile(fn, x, m, depth: int) -> dict:
         events = json.load(gzip.open(glob.glob(f"{d}/**/*.trace.json.gz", recursive=True)[0]))
     events = events["traceEvents"] if isinstance(events, dict) else events
     by_region, by_op, calls, unmapped = (collections.Counter() for _ in range(4))
+    # On an accelerator, only its own events are kernels (the host's carry the same names).
+    procs = {e["pid"]: (e.get("args") or {}).get("name", "") for e in events
+             if e.get("ph") == "M" and e.get("name") == "process_name"}
+    on_device = any("GPU" in v for v in procs.values())
     for e in events:
-        if e.get("ph") != "X":
+        if e.get("ph") != "X" or (on_device and "GPU" not in procs.get(e.get("pid"), "")):
             continue
         op = (e.get("args") or {}).get("hlo_op") or e["name"]
         if op not in names and "_" in op:
@@ -137,7 +141,7 @@ def profile(fn, x, m, depth: int) -> dict:
         kernel_calls=sum(calls.values()),
         regions={k: v * 1e-6 for k, v in by_region.most_common()},
         top=[dict(op=k, s=v * 1e-6, calls=calls[k], op_name=names[k]) for k, v in by_op.most_common(25)],
-        unmapped={k: v * 1e-6 for k, v in unmapped.most_common(10)},
+        unmapped={k: v * 1e-6 for k, v in unmapped.most_common(20)},
     )
 
 
