@@ -53,14 +53,32 @@ def ways(prob):
 
 
 def instructions(compiled_text: str) -> tuple[dict, set]:
-    """{instruction name: op_name} and the names of while and conditional instructions."""
-    names, containers = {}, set()
+    """{instruction name: op_name} and the names of while and conditional instructions. An
+    instruction without metadata of its own (a fusion of ops from several places) takes that of
+    the first instruction with metadata in the computation it calls."""
+    names, containers, calls, first_in = {}, set(), {}, {}
+    computation = None
     for line in compiled_text.splitlines():
-        m = re.match(r"\s+(?:ROOT )?%?([\w.\-]+) = (.*?)metadata=\{op_name=\"([^\"]*)\"", line)
-        if m:
-            names[m.group(1)] = m.group(3)
-            if re.search(r"\b(while|conditional)\(", m.group(2)):
-                containers.add(m.group(1))
+        head = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{$", line)
+        if head:
+            computation = head.group(1)
+            continue
+        m = re.match(r"\s+(?:ROOT )?%?([\w.\-]+) = (.*)", line)
+        if not m:
+            continue
+        meta = re.search(r"metadata=\{op_name=\"([^\"]*)\"", m.group(2))
+        if meta:
+            names[m.group(1)] = meta.group(1)
+            first_in.setdefault(computation, meta.group(1))
+        else:
+            callee = re.search(r"calls=%?([\w.\-]+)", m.group(2))
+            if callee:
+                calls[m.group(1)] = callee.group(1)
+        if re.search(r"\b(while|conditional)\(", m.group(2)):
+            containers.add(m.group(1))
+    for name, callee in calls.items():
+        if callee in first_in:
+            names[name] = first_in[callee]
     return names, containers
 
 
