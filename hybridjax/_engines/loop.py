@@ -74,9 +74,9 @@ sg = lax.stop_gradient
 SAVE_WINDOW = 16
 # Under `jax.vmap`, the most iterations an execution waits for the event phase (`Loop.body`).
 MAX_WAIT = 16
-# Events an event phase can record before they are written into the record: a jump and a Zeno
-# completion after a held step, then the same at the next epoch's start.
-PEND_SLOTS = 4
+# Events an event phase can record before they are written into the record: its one jump (a
+# held step's event or a transition fired at an epoch's start) and a Zeno completion.
+PEND_SLOTS = 2
 
 
 class LoopState(eqx.Module):
