@@ -7,7 +7,9 @@ Each iteration does, in order:
    locates the first event on its held step's dense output and jumps (record the event, apply
    the reset), or accepts the step; then `start_stage`, at the start of an epoch, decides
    whether a guard fires at once (a zero-length epoch, `_rules.start.epoch_start`) and if not
-   chooses the epoch's first step.
+   chooses the epoch's first step. A guard that fires at once is applied by the next event
+   phase's `resolve_stage`, through the same jump (the execution waits at the epoch's start
+   meanwhile), so that the program holds one copy of the jump.
 2. `step_stage`, the hot path: one step of the solver with its step-size controller for every
    execution not waiting; the watched values at the step's samples and the crossing and dip
    tests (`detect`). A step without a candidate is accepted (and its save times written); a
@@ -72,9 +74,9 @@ sg = lax.stop_gradient
 SAVE_WINDOW = 16
 # Under `jax.vmap`, the most iterations an execution waits for the event phase (`Loop.body`).
 MAX_WAIT = 16
-# Events an event phase can record before they are written into the record: a jump and a Zeno
-# completion after a held step, then the same at the next epoch's start.
-PEND_SLOTS = 4
+# Events an event phase can record before they are written into the record: its one jump (a
+# held step's event or a transition fired at an epoch's start) and a Zeno completion.
+PEND_SLOTS = 2
 
 
 class LoopState(eqx.Module):
@@ -124,6 +126,14 @@ class LoopState(eqx.Module):
     p_made_jump: jax.Array
     p_g_end: jax.Array  # (K + W,) the watched values at the step's end
     p_det: Detection
+    # A transition that fires at the start of an epoch (`start_stage`), waiting for the next
+    # event phase, whose one jump (`resolve_stage`) applies it: the program has one copy of the
+    # jump (reset, record, Zeno test) for the events of held steps and of epoch starts.
+    f_fire: jax.Array  # () bool
+    f_k: jax.Array  # () int32: the transition that fires
+    f_simultaneous: jax.Array
+    f_inside: jax.Array
+    f_finite: jax.Array  # the start's vector field and watched values are finite (else NONFINITE)
 
 
 class EventRecord(eqx.Module):
@@ -276,6 +286,11 @@ class Loop:
             p_g_end=jnp.zeros((W,), dtype),
             p_det=Detection(jnp.zeros((W,), bool), jnp.zeros((W,), jnp.int32), jnp.zeros((W,), bool),
                             jnp.zeros((W,), jnp.int32), jnp.zeros((W,), dtype)),
+            f_fire=jnp.array(False),
+            f_k=jnp.array(0, jnp.int32),
+            f_simultaneous=jnp.array(False),
+            f_inside=jnp.array(False),
+            f_finite=jnp.array(True),
         )
 
     # ----------------------------------------------------------------- jump
@@ -406,7 +421,10 @@ class Loop:
 
     # ----------------------------------------------------------------- start of an epoch
     def start_stage(self, st: LoopState) -> LoopState:
-        active = st.at_start & ~st.done
+        """The start test of each new epoch (`epoch_start`): a transition that fires at once is
+        kept for the next event phase's jump (`f_fire`, the execution waits at the epoch's
+        start), a domain component that fires blocks, otherwise the epoch's first step is set."""
+        active = st.at_start & ~st.done & ~st.f_fire
 
         def run(st):
             t, y, mode = sg(st.t), sg(st.y), st.mode
@@ -420,12 +438,16 @@ class Loop:
             # outside its domain (a reset outside the target domain, or x0) or leaving it.
             blocked = _stop(st, (jnp.array(True), Status.BLOCKED))
             if K:
-                # Inputs of a branch not taken get no gradient (NaN-safe "double where").
-                st_f, args_f = mask_inputs(active & start.fire & ~blocks(start.k, K), (st, self.args))
-                fired = self.jump(st_f, jnp.minimum(start.k, K - 1), st_f.t, st_f.y, start.simultaneous,
-                                  jnp.array(True), args_f, inside=start.inside)
+                deferred = start.fire & ~blocks(start.k, K)
+                fired = eqx.tree_at(
+                    lambda s: (s.f_fire, s.f_k, s.f_simultaneous, s.f_inside, s.f_finite),
+                    st,
+                    (jnp.array(True), jnp.minimum(start.k, K - 1), start.simultaneous, start.inside,
+                     start.finite),
+                )
                 fired = _select(blocks(start.k, K), blocked, fired)
             else:
+                deferred = jnp.array(False)
                 fired = blocked
             go = eqx.tree_at(
                 lambda s: (s.at_start, s.g_prev, s.h, s.controller_state, s.made_jump),
@@ -434,7 +456,8 @@ class Loop:
             )
             go = _stop(go, (st.t >= self.t1, Status.T1_REACHED))
             new = _select(start.fire, fired, go)
-            new = _stop(new, (~start.finite, Status.NONFINITE))
+            # A deferred transition is applied first, then stopped (`resolve_stage`).
+            new = _stop(new, (~start.finite & ~deferred, Status.NONFINITE))
             return _select(active, new, st)
 
         return lax.cond(eqxi.unvmap_any(active), run, lambda s: s, st)
@@ -595,9 +618,14 @@ class Loop:
     def resolve_stage(self, st: LoopState, saved):
         """The held steps: locate the first event on each step's dense output (`event_brackets`,
         `first_event`), take its event point and jump, or accept the step where the candidate
-        was a dip that stays positive; save the step's save times up to the event."""
+        was a dip that stays positive; save the step's save times up to the event. The same
+        jump applies the transitions that fired at an epoch's start (`f_fire`, `start_stage`),
+        as a zero-length epoch at the execution's (t, y)."""
         active = st.pending & ~st.done
+        fire = st.f_fire & ~st.done  # never pending at once
         st_all = st
+        # Inputs of a branch not taken get no gradient (NaN-safe "double where").
+        st_f, args_f = mask_inputs(fire, (st, self.args))
         st, args = mask_inputs(active, (st, self.args))
         kern, mode = self.kern, st.mode
         t, t_next, dense_info = st.p_t0, st.p_t1, st.p_dense
@@ -629,13 +657,26 @@ class Loop:
         K = kern.num_transitions
         if K:
             base_e = mask_inputs(active & any_event & ~blocks(k, K), base)
-            jumped = self.jump(base_e, jnp.minimum(k, K - 1), t_ev, y_before, simultaneous, jnp.array(False),
-                               args, grazing)
+            base_f = eqx.tree_at(lambda s: s.f_fire, st_f, jnp.array(False))
+            # One jump: the held step's event, or the transition fired at the epoch's start.
+            jumped = self.jump(
+                _select(fire, base_f, base_e),
+                jnp.where(fire, st_all.f_k, jnp.minimum(k, K - 1)),
+                jnp.where(fire, st_f.t, t_ev),
+                jnp.where(fire, st_f.y, y_before),
+                jnp.where(fire, st_all.f_simultaneous, simultaneous),
+                fire,
+                _select(fire, args_f, args),
+                grazing & ~fire,
+                inside=fire & st_all.f_inside,
+            )
             evented = _select(blocks(k, K), evented, jumped)
+            started = _stop(jumped, (~st_all.f_finite, Status.NONFINITE))
         progressed = _select(any_event, evented, accepted)
         new = _stop(progressed, *step_stops(jnp.array(False), jnp.array(True), st.h, sg(t), self.eps,
                                             progressed.num_steps, self.max_steps))
-        return _select(active, new, st_all), saved
+        new = _select(active, new, st_all)
+        return (_select(fire, started, new) if K else new), saved
 
     def event_phase(self, carry):
         """The rare work, for every execution waiting for it at once: the held steps' events
