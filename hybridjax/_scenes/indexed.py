@@ -14,6 +14,8 @@ share its gap: the engines watch the gap once (`locate_watch`) and solve the cho
 located event (`select`).
 """
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -77,7 +79,61 @@ class ResetSpec(eqx.Module):
     relabel: int = -1
 
 
-class ContactEvaluation(ModeIndexed):
+class SceneEvaluation(ModeIndexed):
+    r"""What the evaluations of a scene's modes share: the kinematics of all its rows (the
+    constraints' gaps, then the tangents of those that stick), the restitution on those rows,
+    the flow $(\dot q, \ddot q)$ (0 in a terminal mode) and the resets (the impact map with the
+    rows a transition holds, or the identity). A subclass gives its modes' accelerations
+    (`_acceleration`), which modes are terminal (`_terminal`) and its resets' tables
+    (`_reset_tables`)."""
+
+    # Static: the scene's Python callables.
+    scene: object = eqx.field(static=True)
+
+    def _rows(self):
+        return rows(self.scene, range(len(self.scene.constraints)))
+
+    def _kinematics(self, t, y, args):
+        n = self.scene.dim
+        return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
+
+    def _restitution(self, args, dtype) -> jax.Array:
+        """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
+        e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
+        return jnp.concatenate([e, jnp.zeros(len(self._rows()[0]) - e.shape[0], dtype)])
+
+    @abc.abstractmethod
+    def _terminal(self) -> tuple:
+        """Per mode, whether it is terminal (its flow is 0)."""
+
+    @abc.abstractmethod
+    def _acceleration(self, mode, kin, args, dtype):
+        r"""$\ddot q$ and the row forces $\lambda$ (all rows) of `mode` at the state of `kin`."""
+
+    @abc.abstractmethod
+    def _reset_tables(self):
+        """Per transition: the rows held (T, rows), whether it is an impact (T,), the rows that
+        take restitution (T, rows), and the least-norm flag (a bool for all, or (T,))."""
+
+    def flow(self, mode, t, y, args) -> jax.Array:
+        n = self.scene.dim
+        kin = self._kinematics(t, y, args)
+        ddq, _ = self._acceleration(mode, kin, args, y.dtype)
+        terminal = jnp.asarray(self._terminal())[mode]
+        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
+
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
+        n = self.scene.dim
+        held, is_impact, hit, least = self._reset_tables()
+        e = jnp.asarray(hit, y.dtype)[k] * self._restitution(args, y.dtype)
+        kin = self._kinematics(t, y, args)
+        if isinstance(least, np.ndarray):
+            least = jnp.asarray(least, y.dtype)[k] if least.any() else False
+        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, least)
+        return jnp.concatenate([y[:n], jnp.where(jnp.asarray(is_impact)[k], dq_plus, y[n:])])
+
+
+class ContactEvaluation(SceneEvaluation):
     r"""The flows, watched functions and resets of a contact system for a traced index.
 
     - `mode_sets`: per mode, its held constraints (indices), None for a terminal mode (flow 0);
@@ -86,8 +142,7 @@ class ContactEvaluation(ModeIndexed):
     - `least_norm`: least-norm contact forces (regularised solve) in every mode.
     """
 
-    # Static: the scene's Python callables and the index tables that choose the code traced.
-    scene: object = eqx.field(static=True)
+    # Static: the index tables that choose the code traced.
     mode_sets: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)
     resets: tuple = eqx.field(static=True)
@@ -95,19 +150,12 @@ class ContactEvaluation(ModeIndexed):
     least_norm: bool = eqx.field(static=True)
 
     # ------------------------------------------------------------------ tables
-    def _rows(self):
-        return rows(self.scene, range(len(self.scene.constraints)))
-
     def _mode_mask(self, mode, dtype) -> jax.Array:
         """(rows,): 1 on the rows of `mode`'s held constraints (a terminal mode holds none)."""
         K = len(self.scene.constraints)
         _, owners = self._rows()
         table = np.asarray([[float(s is not None and i in s) for i in range(K)] for s in self.mode_sets])
         return _by_mode(mode, table[:, np.asarray(owners, dtype=int)], dtype)
-
-    def _kinematics(self, t, y, args):
-        n = self.scene.dim
-        return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
 
     def _selection(self, mode, dtype):
         """(S, m): S (P, rows) picks the rows `mode` holds (P: the most rows any mode holds),
@@ -122,7 +170,10 @@ class ContactEvaluation(ModeIndexed):
         S = _by_mode(mode, table.reshape(len(held), -1), dtype).reshape(P, len(owners))
         return S, jnp.sum(S, axis=1)
 
-    def _acceleration(self, mode, kin, dtype):
+    def _terminal(self) -> tuple:
+        return tuple(s is None for s in self.mode_sets)
+
+    def _acceleration(self, mode, kin, args, dtype):
         r"""$\ddot q$ and the row forces $\lambda$ (all rows, 0 where not held) of `mode`
         (`mechanics.acceleration` on the mode's rows, `_selection`)."""
         S, m = self._selection(mode, dtype)
@@ -132,24 +183,12 @@ class ContactEvaluation(ModeIndexed):
                               self.least_norm)
         return ddq, S.T @ mu
 
-    def _restitution(self, args, dtype) -> jax.Array:
-        """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
-        e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
-        return jnp.concatenate([e, jnp.zeros(len(self._rows()[0]) - e.shape[0], dtype)])
-
     # ------------------------------------------------------------------ ModeIndexed
-    def flow(self, mode, t, y, args) -> jax.Array:
-        n = self.scene.dim
-        kin = self._kinematics(t, y, args)
-        ddq, _ = self._acceleration(mode, kin, y.dtype)
-        terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
-        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
-
     def _values(self, mode, t, y, args):
         """The kinematics at (t, y), the impacts' gaps (K,) and what a slot picks from:
         [gaps (K), row forces of `mode`, 0]."""
         kin = self._kinematics(t, y, args)
-        _, lam = self._acceleration(mode, kin, y.dtype)
+        _, lam = self._acceleration(mode, kin, args, y.dtype)
         gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
         return kin, gaps, jnp.concatenate([gaps, lam, jnp.zeros((1,), y.dtype)])
 
@@ -319,21 +358,20 @@ class ContactEvaluation(ModeIndexed):
         hit = (jnp.arange(R) == k).astype(dtype)  # constraint k's restitution on its gap row alone
         return release_choice(kin, h.reshape(C, R), hit * e, i > 0, g > 0, self.least_norm, present=p > 0)
 
-    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
-        n = self.scene.dim
+    def _reset_tables(self):
         _, owners = self._rows()
         specs = self.resets
         held = np.asarray([[float(r.held is not None and o in r.held) for o in owners] for r in specs])
         is_impact = np.asarray([r.held is not None for r in specs])
         hit = np.asarray([[float(r.held is not None and i == r.hit) for i in range(len(owners))]
                           for r in specs])
-        e = jnp.asarray(hit, y.dtype)[k] * self._restitution(args, y.dtype)
-        kin = self._kinematics(t, y, args)
-        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, self.least_norm)
-        x = jnp.concatenate([y[:n], jnp.where(jnp.asarray(is_impact)[k], dq_plus, y[n:])])
+        return held, is_impact, hit, self.least_norm
+
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
+        x = super().reset(k, t, y, args)
         if not self.relabel_maps:
             return x
-        which = jnp.asarray([r.relabel + 1 for r in specs], jnp.int32)[k]
+        which = jnp.asarray([r.relabel + 1 for r in self.resets], jnp.int32)[k]
         return dispatch(which, [lambda t, x, args: x, *self.relabel_maps], t, x, args)
 
 
