@@ -1047,13 +1047,11 @@ class FrictionEvaluation(SceneEvaluation):
         """(K,): the outcome (`_FrictionImpact.outcome_from`) of an impact of each constraint in
         `mode`, -1 where none solves it or none is built; one vmapped solve."""
         K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
-        C = t["held"].shape[2]
-        if C == 0:
+        if t["held"].shape[2] == 0:
             return jnp.full(K, -1, jnp.int32)
-        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
-        held, bits = pick["held"].reshape(K, C, R), pick["bits"].reshape(K, C, K)
-        present, offsets = pick["present"].reshape(K, C) > 0, pick["offsets"].reshape(K, C)
-        gap_rows = pick["gap_rows"].reshape(K, R) > 0
+        pick = {key: _by_mode(mode, v.astype(float), dtype) for key, v in t.items()}
+        held, bits, present, offsets = pick["held"], pick["bits"], pick["present"] > 0, pick["offsets"]
+        gap_rows = pick["gap_rows"] > 0
         e_all = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
         tan = jnp.asarray(_layout(self.scene)[2], dtype)
         every = jnp.ones(R, bool)
@@ -1094,14 +1092,12 @@ class FrictionEvaluation(SceneEvaluation):
         """(K,) each: `stop_decision` of each slipping contact j of `mode` (the index of the set
         of other contacts stopped with it, and whether all of those and j, stuck, are in their
         cones); one vmapped friction solve."""
-        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
-        C = t["present"].shape[2]
-        if C == 0:
+        K = len(self.scene.constraints)
+        if t["present"].shape[2] == 0:
             return jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool)
-        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
-        present, members = pick["present"].reshape(K, C) > 0, pick["members"].reshape(K, C, K) > 0
-        others, rows_t = pick["others"].reshape(K, K) > 0, pick["rows"].reshape(K, C, R)
-        sign_t, least_t = pick["sign"].reshape(K, C, K), pick["least"].reshape(K, C)
+        pick = {key: _by_mode(mode, v.astype(float), dtype) for key, v in t.items()}
+        present, members, others = pick["present"] > 0, pick["members"] > 0, pick["others"] > 0
+        rows_t, sign_t, least_t = pick["rows"], pick["sign"], pick["least"]
         tan = jnp.asarray(_layout(self.scene)[2], dtype)
         stopped = stop_ties(kin, ddq, tan, dq)  # (j, i)
         lam = jax.vmap(jax.vmap(lambda r, s, f: friction_acceleration(self.scene, kin, mu, r, s, f)[1]))(

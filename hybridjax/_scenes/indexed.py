@@ -167,7 +167,7 @@ class ContactEvaluation(SceneEvaluation):
         table = np.zeros((len(held), P, len(owners)))
         for m, rs in enumerate(held):
             table[m, np.arange(len(rs)), rs] = 1.0
-        S = _by_mode(mode, table.reshape(len(held), -1), dtype).reshape(P, len(owners))
+        S = _by_mode(mode, table, dtype)
         return S, jnp.sum(S, axis=1)
 
     def _terminal(self) -> tuple:
@@ -214,7 +214,7 @@ class ContactEvaluation(SceneEvaluation):
         # The impact's choice `picks[hit]` (-1: none solves it) against the candidates the slot
         # takes, a (S, C + 1) pattern whose column c + 1 is candidate c.
         pick = pick_values(picks, row_by_mode(mode, hit, jnp.int32), -1)
-        takes = row_by_mode(mode, chosen.reshape(len(chosen), -1), y.dtype).reshape(chosen.shape[1:]) > 0
+        takes = _by_mode(mode, chosen, y.dtype) > 0
         taken = jnp.any(takes & (pick[:, None] + 1 == jnp.arange(chosen.shape[2])[None, :]), axis=1)
         return jnp.where(row_by_mode(mode, selected, y.dtype) > 0, selection_guard(out, taken), out)
 
@@ -240,8 +240,7 @@ class ContactEvaluation(SceneEvaluation):
         k = pick_values(row_by_mode(mode, hit, jnp.int32), slot[None], 0)[0]
         kin = self._kinematics(t, y, args)
         e = self._restitution(args, y.dtype)
-        tables = tuple(_by_mode(mode, tab.reshape(M, -1), y.dtype).reshape(tab.shape[1:])
-                       for tab in self._choice_tables())
+        tables = tuple(_by_mode(mode, tab, y.dtype) for tab in self._choice_tables())
         pick = self._choice(k, kin, e, *tables)
         row = row_by_mode(mode, redirect.reshape(M, -1), jnp.int32)
         taken = pick_values(row, (slot * C1 + pick + 1)[None], 0)[0]
@@ -329,19 +328,14 @@ class ContactEvaluation(SceneEvaluation):
         impact one gap or two are closed, so a loop over those needed costs one or two solves
         where a solve of every constraint costs K (under `jax.vmap`, the loop runs as often as
         the execution that needs the most)."""
-        K, R = len(self.scene.constraints), len(self._rows()[0])
-        held, present, gap_rows, involved = self._choice_tables()
-        C = held.shape[2]
-        held = _by_mode(mode, held.reshape(held.shape[0], -1), dtype).reshape(K, C * R)
-        present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C)
-        gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R)
-        involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R)
+        K = len(self.scene.constraints)
+        tables = tuple(_by_mode(mode, tab, dtype) for tab in self._choice_tables())
         e = self._restitution(args, dtype)
 
         def body(carry):
             picks, left = carry
             k = jnp.argmax(left)
-            pick = self._choice(k, kin, e, held.reshape(K, C, R), present, gap_rows, involved)
+            pick = self._choice(k, kin, e, *tables)
             mine = jnp.arange(K) == k
             return jnp.where(mine, pick, picks), left & ~mine
 
@@ -376,5 +370,6 @@ class ContactEvaluation(SceneEvaluation):
 
 
 def _by_mode(mode, table, dtype) -> jax.Array:
-    """Row `mode` of the constant (modes, m) `table` (`kernels.row_by_mode`)."""
-    return row_by_mode(mode, np.asarray(table), dtype)
+    """Entry `mode` of the constant (modes, ...) `table` (`kernels.row_by_mode` of its rows)."""
+    table = np.asarray(table)
+    return row_by_mode(mode, table.reshape(len(table), -1), dtype).reshape(table.shape[1:])
