@@ -52,7 +52,7 @@ from .._core import small_linalg as small_linalg
 from .._definition.kernels import pick_values, select_by_mode
 from .._definition.system import Mode, Transition
 from .graph import ContactGraph, ExploreRules, Leaving, explore
-from .indexed import SceneEvaluation, _by_mode
+from .indexed import SceneEvaluation, _by_mode, choice_groups
 from .laws import HELD, SLIP_NEG, SLIP_POS, STICK
 from .mechanics import (
     _INDEPENDENT,
@@ -980,16 +980,10 @@ class FrictionEvaluation(SceneEvaluation):
         return self._by_slots(mode, value, y.dtype)
 
     def _groups(self) -> list:
-        """Per mode, per slot: the slots of the same choice (an impact's outcomes of one
-        constraint, a stop's outcomes of one slipping contact; the slot alone elsewhere), and
-        whether the slot is the first of them."""
-        out = []
-        for specs in self.slots:
-            keys = [(sp.kind, sp.j) if sp.kind in ("impact", "stop") else ("own", s)
-                    for s, sp in enumerate(specs)]
-            out.append([([s2 for s2, k2 in enumerate(keys) if k2 == key], keys.index(key) == s)
-                        for s, key in enumerate(keys)])
-        return out
+        """Per mode, `choice_groups` of its slots: an impact's outcomes of one constraint, a
+        stop's outcomes of one slipping contact."""
+        return [choice_groups([(sp.kind, sp.j) if sp.kind in ("impact", "stop") else None for sp in specs])
+                for specs in self.slots]
 
     def locate_watch(self, mode, t, y, args) -> jax.Array:
         """`watch` with each choice's selection guards located on the value they share (an

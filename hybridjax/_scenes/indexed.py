@@ -247,35 +247,34 @@ class ContactEvaluation(SceneEvaluation):
         is_selected = pick_values(row_by_mode(mode, selected, y.dtype), slot[None], 0.0)[0] > 0
         return jnp.where(is_selected, taken, slot)
 
+    def _groups(self) -> list:
+        """Per mode, `choice_groups` of its slots: a selection guard's choice is its impact's."""
+        return [choice_groups([sp.choice.hit if sp.kind == SELECTED else None for sp in specs])
+                for specs in self.slots]
+
     def _located_tables(self):
         """`_slot_tables`' index and offset with every selection guard but the first of each
         impact reading the constant +1 (the zero entry plus an offset of 1)."""
-        index, offset, selected, hit, _ = self._slot_tables()
+        index, offset, *_ = self._slot_tables()
         index, offset = index.copy(), offset.copy()
         zero = len(self.scene.constraints) + len(self._rows()[0])
-        for m in range(index.shape[0]):
-            seen = set()
-            for s in range(index.shape[1]):
-                if selected[m, s]:
-                    if hit[m, s] in seen:
-                        index[m, s], offset[m, s] = zero, 1.0
-                    seen.add(hit[m, s])
+        for m, groups in enumerate(self._groups()):
+            for s, (_, first) in enumerate(groups):
+                if not first:
+                    index[m, s], offset[m, s] = zero, 1.0
         return index, offset
 
     def _redirect_table(self):
         """(modes, S, C + 1): for a selection guard, the slot of its impact that takes each
         outcome (column 0: none solves it; column c + 1: candidate c); the slot itself
         elsewhere."""
-        _, _, selected, hit, chosen = self._slot_tables()
+        *_, chosen = self._slot_tables()
         M, S, C1 = chosen.shape
         redirect = np.broadcast_to(np.arange(S)[None, :, None], (M, S, C1)).copy()
-        for m in range(M):
-            for s in range(S):
-                if not selected[m, s]:
-                    continue
-                for s2 in range(S):
-                    if selected[m, s2] and hit[m, s2] == hit[m, s]:
-                        redirect[m, s, chosen[m, s2] > 0] = s2
+        for m, groups in enumerate(self._groups()):
+            for s, (members, _) in enumerate(groups):
+                for s2 in members:  # a slot of its own takes no candidate
+                    redirect[m, s, chosen[m, s2] > 0] = s2
         return redirect
 
     def _slot_tables(self):
@@ -367,6 +366,15 @@ class ContactEvaluation(SceneEvaluation):
             return x
         which = jnp.asarray([r.relabel + 1 for r in self.resets], jnp.int32)[k]
         return dispatch(which, [lambda t, x, args: x, *self.relabel_maps], t, x, args)
+
+
+def choice_groups(keys: list) -> list:
+    """Per slot of one mode, from each slot's choice (`keys[s]`, None for a slot of its own):
+    the slots of the same choice, and whether the slot is the first of them (the one located
+    on the value they share, `ModeIndexed.locate_watch`)."""
+    keys = [("own", s) if key is None else key for s, key in enumerate(keys)]
+    return [([s2 for s2, k2 in enumerate(keys) if k2 == key], keys.index(key) == s)
+            for s, key in enumerate(keys)]
 
 
 def _by_mode(mode, table, dtype) -> jax.Array:
