@@ -153,12 +153,11 @@ class Kernels:
         self.mode_watch = [[w for w, (src, _) in enumerate(watch) if src == m]
                            for m in range(system.num_modes)]
         self.num_slots = max(map(len, self.mode_watch), default=0)
-        # (modes, slots): the watched function in each mode's slot (0 where the slot is unused).
+        # (modes, slots): the watched function in each mode's slot (0 where the slot is unused), a
+        # NumPy table: read under a traced mode through `row_by_mode` or `jnp.asarray`.
         slot_watch = np.asarray([[own[s] if s < len(own) else 0 for s in range(self.num_slots)]
                                  for own in self.mode_watch], dtype=np.int32)
-        slot_watch = slot_watch.reshape(system.num_modes, self.num_slots)
-        self._slot_watch_table = slot_watch
-        self.slot_watch = jnp.asarray(slot_watch)
+        self.slot_watch = slot_watch.reshape(system.num_modes, self.num_slots)
         # Each watched function's slot in its own mode (`from_slots`).
         self.watch_slot = [self.mode_watch[src].index(w) for w, (src, _) in enumerate(watch)]
         # One evaluation for the traced mode, where the system has it (`ModeIndexed`).
@@ -179,7 +178,7 @@ class Kernels:
         watch_slot = np.asarray(self.watch_slot, np.int32)
         slot = pick_values(jnp.asarray(watch_slot), jnp.clip(k, 0, self.num_watch - 1)[None], 0)[0]
         chosen = self.indexed.select(mode, slot, t, y, args)
-        k_new = pick_values(row_by_mode(mode, self._slot_watch_table, jnp.int32), chosen[None], 0)[0]
+        k_new = pick_values(row_by_mode(mode, self.slot_watch, jnp.int32), chosen[None], 0)[0]
         return jnp.where(k < self.num_transitions, k_new, k).astype(jnp.asarray(k).dtype)
 
     # ---------------------------------------------------------------- per-mode pieces

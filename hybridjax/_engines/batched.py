@@ -589,7 +589,7 @@ class BatchedLoop:
         br = event_brackets(values_at, det, s_ext, tol, self.locator)
         any_event = jnp.any(br.has)
         t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
-        k = jnp.where(any_event, kern.slot_watch[mode, slot], 0).astype(jnp.int32)
+        k = jnp.where(any_event, jnp.asarray(kern.slot_watch)[mode, slot], 0).astype(jnp.int32)
         ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
         interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)
         # The coefficients computed once: without the barrier XLA recomputes their sums of the

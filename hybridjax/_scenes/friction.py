@@ -36,7 +36,7 @@ import functools
 import itertools
 import re
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import equinox.internal as eqxi
@@ -49,11 +49,10 @@ from jaxtyping import PRNGKeyArray
 
 from .._analysis.search import SearchOptions, box_samples
 from .._core import small_linalg as small_linalg
-from .._definition.indexed import ModeIndexed
 from .._definition.kernels import pick_values, select_by_mode
 from .._definition.system import Mode, Transition
 from .graph import ContactGraph, ExploreRules, Leaving, explore
-from .indexed import _by_mode
+from .indexed import SceneEvaluation, _by_mode, choice_groups
 from .laws import HELD, SLIP_NEG, SLIP_POS, STICK
 from .mechanics import (
     _INDEPENDENT,
@@ -62,7 +61,6 @@ from .mechanics import (
     impact,
     impact_candidate,
     impact_gaps,
-    impact_map,
     independence,
     kinematics,
     rows,
@@ -851,7 +849,24 @@ class FrictionReset(eqx.Module):
     least_norm: bool = False
 
 
-class FrictionEvaluation(ModeIndexed):
+class _Parts(NamedTuple):
+    """What a friction mode's watched values read (`FrictionEvaluation._parts`): the
+    kinematics, the friction coefficients, the mode's solve (accelerations `ddq`, row forces
+    `lam`) and its rows and slip signs, the impacts' gaps, the rows' rates, and the slip
+    consistency where a mode watches it (else None)."""
+
+    kin: Any
+    mu: jax.Array
+    ddq: jax.Array
+    lam: jax.Array
+    rows_mask: jax.Array
+    sign: jax.Array
+    gaps: jax.Array
+    rate: jax.Array
+    consistency: jax.Array | None
+
+
+class FrictionEvaluation(SceneEvaluation):
     """A friction system evaluated for the traced mode: every state is one friction solve
     (`friction_acceleration`) with the state's held rows, slip signs and least-norm flag, looked
     up in tables by the mode; the guards read its forces and the kinematics' rates, and the
@@ -859,8 +874,7 @@ class FrictionEvaluation(ModeIndexed):
     only where one of the current mode's guards that reads them is at or below zero, and for the
     engines (`locate_watch`, `select`) once, at the located event."""
 
-    # Static: the scene's Python callables and the tables that choose the code traced.
-    scene: Scene = eqx.field(static=True)
+    # Static: the tables that choose the code traced.
     states: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)
     resets: tuple = eqx.field(static=True)
@@ -884,41 +898,72 @@ class FrictionEvaluation(ModeIndexed):
         rows_mask, sign = _by_mode(mode, rows_t, dtype), _by_mode(mode, sign_t, dtype)
         return friction_acceleration(self.scene, kin, mu, rows_mask, sign, least), rows_mask, sign
 
-    def _kinematics(self, t, y, args):
-        n = self.scene.dim
-        return kinematics(self.scene, _layout(self.scene)[0], t, y[:n], y[n:], args)
+    def _terminal(self) -> tuple:
+        return tuple(S is None for S in self.states)
 
-    def flow(self, mode, t, y, args) -> jax.Array:
-        n = self.scene.dim
-        kin = self._kinematics(t, y, args)
-        (ddq, _), _, _ = self._solve(mode, kin, friction_coefficients(self.scene, args, y.dtype), y.dtype)
-        terminal = jnp.asarray([S is None for S in self.states])[mode]
-        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
+    def _acceleration(self, mode, kin, args, dtype):
+        return self._solve(mode, kin, friction_coefficients(self.scene, args, dtype), dtype)[0]
 
-    def watch(self, mode, t, y, args) -> jax.Array:
-        n, K = self.scene.dim, len(self.scene.constraints)
-        tan = _layout(self.scene)[2]
-        row = [int(np.argmax(tan[i])) for i in range(K)]
+    def _solved(self, mode, t, y, args):
+        """The kinematics at (t, y), the friction coefficients and `mode`'s solve."""
         kin = self._kinematics(t, y, args)
         mu = friction_coefficients(self.scene, args, y.dtype)
         (ddq, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
-        gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
-        slots = [(m, sp) for m, specs in enumerate(self.slots) for sp in specs]
+        return kin, mu, ddq, lam, rows_mask, sign
 
-        def speed(sp):
-            return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
+    def _parts(self, mode, t, y, args) -> _Parts:
+        """Everything `mode`'s watched values read at (t, y) (`_Parts`)."""
+        kin, mu, ddq, lam, rows_mask, sign = self._solved(mode, t, y, args)
+        gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
+        value = None
+        if any(sp.kind == "painleve" for specs in self.slots for sp in specs):
+            value = consistency(self.scene, kin, mu, rows_mask, sign)
+        return _Parts(kin, mu, ddq, lam, rows_mask, sign, gaps, kin.adot, value)
 
+    def _slot_value(self, sp: FrictionSlot, parts: _Parts, taken=None) -> jax.Array:
+        """The watched value of slot `sp`: for a choice's slot (an impact's, a stop's) the value
+        the choice's slots share (the gap, the slip speed), as the selection guard of the
+        outcomes the slot takes where `taken` is given."""
+        row = int(np.argmax(_layout(self.scene)[2][sp.j])) if sp.kind in ("cone", "stop") else 0
+        if sp.kind == "painleve":
+            return parts.consistency
+        if sp.kind == "lift":
+            return parts.lam[sp.j] + sp.offset
+        if sp.kind == "cone":
+            return parts.mu[sp.j] * parts.lam[sp.j] + sp.d * parts.lam[row] + sp.offset
+        if sp.kind not in ("impact", "stop"):
+            return jnp.asarray(sp.offset, parts.kin.dq.dtype)
+        value = parts.gaps[sp.j] if sp.kind == "impact" else SIGN[sp.state[sp.j]] * parts.rate[row]
+        return value if taken is None else selection_guard(value, taken)
+
+    @staticmethod
+    def _taken(sp: FrictionSlot, got, which, inside) -> jax.Array:
+        """Whether slot `sp` takes its choice's outcome: the impacts' outcomes `got` (K,), the
+        stops' decisions `which`, `inside` (K,) (`_impact_outcomes`, `_stop_decisions`)."""
+        if sp.kind == "impact":
+            return jnp.any(jnp.stack([got[sp.j] == i for i in sp.ids]))
+        if sp.kind == "stop":
+            return stop_goes(which[sp.j], inside[sp.j], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
+        return jnp.array(True)
+
+    def _by_slots(self, mode, value, dtype) -> jax.Array:
+        """`value(sp, s, m)` of every slot `s` of every mode `m`, that of `mode` selected."""
+        rows = [[value(sp, s, m) for s, sp in enumerate(specs)] for m, specs in enumerate(self.slots)]
+        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, dtype)
+
+    def watch(self, mode, t, y, args) -> jax.Array:
+        n, K = self.scene.dim, len(self.scene.constraints)
+        parts = self._parts(mode, t, y, args)
         # The discrete choices of the current mode (an impact's outcome per constraint, a stop's
         # decision per slipping contact), each one vmapped solve without gradients, computed
         # only where a guard of the current mode that reads one is at or below zero.
         imp_t, stop_t = self._impact_tables(), self._stop_tables()
         has_impact = _by_mode(mode, imp_t["present"].any(axis=2).astype(float), y.dtype) > 0
         has_stop = _by_mode(mode, stop_t["present"].any(axis=2).astype(float), y.dtype) > 0
-        slipping = sign != 0
-        speeds = sign * (jnp.asarray(tan, y.dtype) @ rate)
-        need = jnp.any(has_impact & (gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
-
-        kin_sg, mu_sg, y_sg, args_sg, ddq_sg = lax.stop_gradient((kin, mu, y, args, ddq))
+        slipping = parts.sign != 0
+        speeds = parts.sign * (jnp.asarray(_layout(self.scene)[2], y.dtype) @ parts.rate)
+        need = jnp.any(has_impact & (parts.gaps <= 0)) | jnp.any(has_stop & slipping & (speeds <= 0))
+        kin_sg, mu_sg, y_sg, args_sg, ddq_sg = lax.stop_gradient((parts.kin, parts.mu, y, args, parts.ddq))
 
         def choices():
             got = self._impact_outcomes(mode, kin_sg, args_sg, imp_t, y.dtype)
@@ -927,73 +972,32 @@ class FrictionEvaluation(ModeIndexed):
 
         none = (jnp.full(K, -1, jnp.int32), jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool))
         got, which, inside = lax.cond(eqxi.unvmap_any(need), choices, lambda: none)
-        consistency_value = None
-        if any(sp.kind == "painleve" for _, sp in slots):
-            consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
 
-        def value(sp):
-            if sp.kind == "painleve":
-                return consistency_value
-            if sp.kind == "impact":
-                o = got[sp.j]
-                return selection_guard(gaps[sp.j], jnp.any(jnp.stack([o == i for i in sp.ids])))
-            if sp.kind == "lift":
-                return lam[sp.j] + sp.offset
-            if sp.kind == "cone":
-                return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
-            if sp.kind == "stop":
-                go = stop_goes(which[sp.j], inside[sp.j], stop_subsets(sp.state, sp.j), sp.to_stick, sp.tied)
-                return selection_guard(speed(sp), go)
-            return jnp.asarray(sp.offset, y.dtype)
+        def value(sp, s, m):
+            choice = sp.kind in ("impact", "stop")
+            return self._slot_value(sp, parts, self._taken(sp, got, which, inside) if choice else None)
 
-        rows = [[value(sp) for sp in specs] for specs in self.slots]
-        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+        return self._by_slots(mode, value, y.dtype)
 
     def _groups(self) -> list:
-        """Per mode, per slot: the slots of the same choice (an impact's outcomes of one
-        constraint, a stop's outcomes of one slipping contact; the slot alone elsewhere), and
-        whether the slot is the first of them."""
-        out = []
-        for specs in self.slots:
-            keys = [(sp.kind, sp.j) if sp.kind in ("impact", "stop") else ("own", s)
-                    for s, sp in enumerate(specs)]
-            out.append([([s2 for s2, k2 in enumerate(keys) if k2 == key], keys.index(key) == s)
-                        for s, key in enumerate(keys)])
-        return out
+        """Per mode, `choice_groups` of its slots: an impact's outcomes of one constraint, a
+        stop's outcomes of one slipping contact."""
+        return [choice_groups([(sp.kind, sp.j) if sp.kind in ("impact", "stop") else None for sp in specs])
+                for specs in self.slots]
 
     def locate_watch(self, mode, t, y, args) -> jax.Array:
         """`watch` with each choice's selection guards located on the value they share (an
         impact's gap, a stop's slip speed): the first reads it, the others +1; `select` takes
         the choice at the event. No choice is solved while locating."""
-        n = self.scene.dim
-        tan = _layout(self.scene)[2]
-        row = [int(np.argmax(tan[i])) for i in range(len(self.scene.constraints))]
-        kin = self._kinematics(t, y, args)
-        mu = friction_coefficients(self.scene, args, y.dtype)
-        (_, lam), rows_mask, sign = self._solve(mode, kin, mu, y.dtype)
-        gaps, rate = impact_gaps(self.scene, t, y[:n], args, kin.gap), kin.adot
-        consistency_value = None
-        if any(sp.kind == "painleve" for specs in self.slots for sp in specs):
-            consistency_value = consistency(self.scene, kin, mu, rows_mask, sign)
+        parts = self._parts(mode, t, y, args)
+        groups = self._groups()
 
-        def value(sp, first):
-            if sp.kind in ("impact", "stop") and not first:
+        def value(sp, s, m):
+            if sp.kind in ("impact", "stop") and not groups[m][s][1]:
                 return jnp.ones((), y.dtype)
-            if sp.kind == "painleve":
-                return consistency_value
-            if sp.kind == "impact":
-                return gaps[sp.j]
-            if sp.kind == "lift":
-                return lam[sp.j] + sp.offset
-            if sp.kind == "cone":
-                return mu[sp.j] * lam[sp.j] + sp.d * lam[row[sp.j]] + sp.offset
-            if sp.kind == "stop":
-                return SIGN[sp.state[sp.j]] * rate[row[sp.j]]
-            return jnp.asarray(sp.offset, y.dtype)
+            return self._slot_value(sp, parts)
 
-        rows = [[value(sp, first) for sp, (_, first) in zip(specs, groups, strict=True)]
-                for specs, groups in zip(self.slots, self._groups(), strict=True)]
-        return select_by_mode(mode, rows, max(map(len, self.slots), default=0), 1.0, y.dtype)
+        return self._by_slots(mode, value, y.dtype)
 
     def select(self, mode, slot, t, y, args) -> jax.Array:
         """The slot of the choice located on `slot` whose outcome holds at (t, y) (exactly one
@@ -1002,25 +1006,14 @@ class FrictionEvaluation(ModeIndexed):
         if not any(len(g) > 1 for gs in groups for g, _ in gs):
             return slot
         n = self.scene.dim
-        kin = self._kinematics(t, y, args)
-        mu = friction_coefficients(self.scene, args, y.dtype)
-        (ddq, _), _, _ = self._solve(mode, kin, mu, y.dtype)
+        kin, mu, ddq, _, _, _ = self._solved(mode, t, y, args)
         got = self._impact_outcomes(mode, kin, args, self._impact_tables(), y.dtype)
         which, inside = self._stop_decisions(mode, kin, mu, y[n:], ddq, self._stop_tables(), y.dtype)
-
-        def taken(sp):
-            if sp.kind == "impact":
-                return jnp.any(jnp.stack([got[sp.j] == i for i in sp.ids]))
-            if sp.kind == "stop":
-                subsets = stop_subsets(sp.state, sp.j)
-                return stop_goes(which[sp.j], inside[sp.j], subsets, sp.to_stick, sp.tied)
-            return jnp.array(True)
-
         S = max(map(len, self.slots), default=0)
         # Per mode, (S,) the slot each slot's choice goes to.
         rows = []
         for specs, gs in zip(self.slots, groups, strict=True):
-            takes = [taken(sp) for sp in specs]
+            takes = [self._taken(sp, got, which, inside) for sp in specs]
             rows.append([jnp.asarray(members[0], jnp.int32) if len(members) == 1 else
                          jnp.asarray(members, jnp.int32)[jnp.argmax(jnp.stack([takes[m] for m in members]))]
                          for members, _ in gs])
@@ -1048,13 +1041,11 @@ class FrictionEvaluation(ModeIndexed):
         """(K,): the outcome (`_FrictionImpact.outcome_from`) of an impact of each constraint in
         `mode`, -1 where none solves it or none is built; one vmapped solve."""
         K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
-        C = t["held"].shape[2]
-        if C == 0:
+        if t["held"].shape[2] == 0:
             return jnp.full(K, -1, jnp.int32)
-        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
-        held, bits = pick["held"].reshape(K, C, R), pick["bits"].reshape(K, C, K)
-        present, offsets = pick["present"].reshape(K, C) > 0, pick["offsets"].reshape(K, C)
-        gap_rows = pick["gap_rows"].reshape(K, R) > 0
+        pick = {key: _by_mode(mode, v.astype(float), dtype) for key, v in t.items()}
+        held, bits, present, offsets = pick["held"], pick["bits"], pick["present"] > 0, pick["offsets"]
+        gap_rows = pick["gap_rows"] > 0
         e_all = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
         tan = jnp.asarray(_layout(self.scene)[2], dtype)
         every = jnp.ones(R, bool)
@@ -1095,14 +1086,12 @@ class FrictionEvaluation(ModeIndexed):
         """(K,) each: `stop_decision` of each slipping contact j of `mode` (the index of the set
         of other contacts stopped with it, and whether all of those and j, stuck, are in their
         cones); one vmapped friction solve."""
-        K, R = len(self.scene.constraints), len(_layout(self.scene)[0])
-        C = t["present"].shape[2]
-        if C == 0:
+        K = len(self.scene.constraints)
+        if t["present"].shape[2] == 0:
             return jnp.full(K, -1, jnp.int32), jnp.zeros(K, bool)
-        pick = {key: _by_mode(mode, v.reshape(v.shape[0], -1).astype(float), dtype) for key, v in t.items()}
-        present, members = pick["present"].reshape(K, C) > 0, pick["members"].reshape(K, C, K) > 0
-        others, rows_t = pick["others"].reshape(K, K) > 0, pick["rows"].reshape(K, C, R)
-        sign_t, least_t = pick["sign"].reshape(K, C, K), pick["least"].reshape(K, C)
+        pick = {key: _by_mode(mode, v.astype(float), dtype) for key, v in t.items()}
+        present, members, others = pick["present"] > 0, pick["members"] > 0, pick["others"] > 0
+        rows_t, sign_t, least_t = pick["rows"], pick["sign"], pick["least"]
         tan = jnp.asarray(_layout(self.scene)[2], dtype)
         stopped = stop_ties(kin, ddq, tan, dq)  # (j, i)
         lam = jax.vmap(jax.vmap(lambda r, s, f: friction_acceleration(self.scene, kin, mu, r, s, f)[1]))(
@@ -1116,21 +1105,13 @@ class FrictionEvaluation(ModeIndexed):
         inside = jnp.take_along_axis(ok, jnp.maximum(which, 0)[:, None], axis=1)[:, 0] & (which >= 0)
         return which.astype(jnp.int32), inside
 
-    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
-        n, K = self.scene.dim, len(self.scene.constraints)
-        owners = _layout(self.scene)[1]
-        R = len(owners)
+    def _reset_tables(self):
+        R = len(_layout(self.scene)[1])
         specs = self.resets
         held = np.asarray([np.zeros(R) if r.rows is None else r.rows for r in specs])
         moves = np.asarray([r.rows is not None for r in specs])
         hit = np.asarray([[float(r.restitute and i == r.hit) for i in range(R)] for r in specs])
-        least = np.asarray([float(r.least_norm) for r in specs])
-        e_all = jnp.stack([jnp.asarray(c.coefficient(args), y.dtype) for c in self.scene.constraints])
-        e = jnp.asarray(hit, y.dtype)[k] * jnp.concatenate([e_all, jnp.zeros(R - K, y.dtype)])
-        kin = self._kinematics(t, y, args)
-        ln = jnp.asarray(least, y.dtype)[k] if least.any() else False
-        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, ln)
-        return jnp.concatenate([y[:n], jnp.where(jnp.asarray(moves)[k], dq_plus, y[n:])])
+        return held, moves, hit, np.asarray([float(r.least_norm) for r in specs])
 
 
 def _add(asm: Assembly, src: str, T: tuple, guard, reset, label: str, edge_text: str, ok: bool, slot,

@@ -14,6 +14,8 @@ share its gap: the engines watch the gap once (`locate_watch`) and solve the cho
 located event (`select`).
 """
 
+import abc
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -77,7 +79,61 @@ class ResetSpec(eqx.Module):
     relabel: int = -1
 
 
-class ContactEvaluation(ModeIndexed):
+class SceneEvaluation(ModeIndexed):
+    r"""What the evaluations of a scene's modes share: the kinematics of all its rows (the
+    constraints' gaps, then the tangents of those that stick), the restitution on those rows,
+    the flow $(\dot q, \ddot q)$ (0 in a terminal mode) and the resets (the impact map with the
+    rows a transition holds, or the identity). A subclass gives its modes' accelerations
+    (`_acceleration`), which modes are terminal (`_terminal`) and its resets' tables
+    (`_reset_tables`)."""
+
+    # Static: the scene's Python callables.
+    scene: object = eqx.field(static=True)
+
+    def _rows(self):
+        return rows(self.scene, range(len(self.scene.constraints)))
+
+    def _kinematics(self, t, y, args):
+        n = self.scene.dim
+        return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
+
+    def _restitution(self, args, dtype) -> jax.Array:
+        """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
+        e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
+        return jnp.concatenate([e, jnp.zeros(len(self._rows()[0]) - e.shape[0], dtype)])
+
+    @abc.abstractmethod
+    def _terminal(self) -> tuple:
+        """Per mode, whether it is terminal (its flow is 0)."""
+
+    @abc.abstractmethod
+    def _acceleration(self, mode, kin, args, dtype):
+        r"""$\ddot q$ and the row forces $\lambda$ (all rows) of `mode` at the state of `kin`."""
+
+    @abc.abstractmethod
+    def _reset_tables(self):
+        """Per transition: the rows held (T, rows), whether it is an impact (T,), the rows that
+        take restitution (T, rows), and the least-norm flag (a bool for all, or (T,))."""
+
+    def flow(self, mode, t, y, args) -> jax.Array:
+        n = self.scene.dim
+        kin = self._kinematics(t, y, args)
+        ddq, _ = self._acceleration(mode, kin, args, y.dtype)
+        terminal = jnp.asarray(self._terminal())[mode]
+        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
+
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
+        n = self.scene.dim
+        held, is_impact, hit, least = self._reset_tables()
+        e = jnp.asarray(hit, y.dtype)[k] * self._restitution(args, y.dtype)
+        kin = self._kinematics(t, y, args)
+        if isinstance(least, np.ndarray):
+            least = jnp.asarray(least, y.dtype)[k] if least.any() else False
+        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, least)
+        return jnp.concatenate([y[:n], jnp.where(jnp.asarray(is_impact)[k], dq_plus, y[n:])])
+
+
+class ContactEvaluation(SceneEvaluation):
     r"""The flows, watched functions and resets of a contact system for a traced index.
 
     - `mode_sets`: per mode, its held constraints (indices), None for a terminal mode (flow 0);
@@ -86,8 +142,7 @@ class ContactEvaluation(ModeIndexed):
     - `least_norm`: least-norm contact forces (regularised solve) in every mode.
     """
 
-    # Static: the scene's Python callables and the index tables that choose the code traced.
-    scene: object = eqx.field(static=True)
+    # Static: the index tables that choose the code traced.
     mode_sets: tuple = eqx.field(static=True)
     slots: tuple = eqx.field(static=True)
     resets: tuple = eqx.field(static=True)
@@ -95,19 +150,12 @@ class ContactEvaluation(ModeIndexed):
     least_norm: bool = eqx.field(static=True)
 
     # ------------------------------------------------------------------ tables
-    def _rows(self):
-        return rows(self.scene, range(len(self.scene.constraints)))
-
     def _mode_mask(self, mode, dtype) -> jax.Array:
         """(rows,): 1 on the rows of `mode`'s held constraints (a terminal mode holds none)."""
         K = len(self.scene.constraints)
         _, owners = self._rows()
         table = np.asarray([[float(s is not None and i in s) for i in range(K)] for s in self.mode_sets])
         return _by_mode(mode, table[:, np.asarray(owners, dtype=int)], dtype)
-
-    def _kinematics(self, t, y, args):
-        n = self.scene.dim
-        return kinematics(self.scene, self._rows()[0], t, y[:n], y[n:], args)
 
     def _selection(self, mode, dtype):
         """(S, m): S (P, rows) picks the rows `mode` holds (P: the most rows any mode holds),
@@ -119,10 +167,13 @@ class ContactEvaluation(ModeIndexed):
         table = np.zeros((len(held), P, len(owners)))
         for m, rs in enumerate(held):
             table[m, np.arange(len(rs)), rs] = 1.0
-        S = _by_mode(mode, table.reshape(len(held), -1), dtype).reshape(P, len(owners))
+        S = _by_mode(mode, table, dtype)
         return S, jnp.sum(S, axis=1)
 
-    def _acceleration(self, mode, kin, dtype):
+    def _terminal(self) -> tuple:
+        return tuple(s is None for s in self.mode_sets)
+
+    def _acceleration(self, mode, kin, args, dtype):
         r"""$\ddot q$ and the row forces $\lambda$ (all rows, 0 where not held) of `mode`
         (`mechanics.acceleration` on the mode's rows, `_selection`)."""
         S, m = self._selection(mode, dtype)
@@ -132,24 +183,12 @@ class ContactEvaluation(ModeIndexed):
                               self.least_norm)
         return ddq, S.T @ mu
 
-    def _restitution(self, args, dtype) -> jax.Array:
-        """(rows,): each constraint's coefficient on its gap row, 0 on the tangent rows."""
-        e = jnp.stack([jnp.asarray(c.coefficient(args), dtype) for c in self.scene.constraints])
-        return jnp.concatenate([e, jnp.zeros(len(self._rows()[0]) - e.shape[0], dtype)])
-
     # ------------------------------------------------------------------ ModeIndexed
-    def flow(self, mode, t, y, args) -> jax.Array:
-        n = self.scene.dim
-        kin = self._kinematics(t, y, args)
-        ddq, _ = self._acceleration(mode, kin, y.dtype)
-        terminal = jnp.asarray([s is None for s in self.mode_sets])[mode]
-        return jnp.where(terminal, 0.0, jnp.concatenate([y[n:], ddq]))
-
     def _values(self, mode, t, y, args):
         """The kinematics at (t, y), the impacts' gaps (K,) and what a slot picks from:
         [gaps (K), row forces of `mode`, 0]."""
         kin = self._kinematics(t, y, args)
-        _, lam = self._acceleration(mode, kin, y.dtype)
+        _, lam = self._acceleration(mode, kin, args, y.dtype)
         gaps = impact_gaps(self.scene, t, y[: self.scene.dim], args, kin.gap)
         return kin, gaps, jnp.concatenate([gaps, lam, jnp.zeros((1,), y.dtype)])
 
@@ -175,7 +214,7 @@ class ContactEvaluation(ModeIndexed):
         # The impact's choice `picks[hit]` (-1: none solves it) against the candidates the slot
         # takes, a (S, C + 1) pattern whose column c + 1 is candidate c.
         pick = pick_values(picks, row_by_mode(mode, hit, jnp.int32), -1)
-        takes = row_by_mode(mode, chosen.reshape(len(chosen), -1), y.dtype).reshape(chosen.shape[1:]) > 0
+        takes = _by_mode(mode, chosen, y.dtype) > 0
         taken = jnp.any(takes & (pick[:, None] + 1 == jnp.arange(chosen.shape[2])[None, :]), axis=1)
         return jnp.where(row_by_mode(mode, selected, y.dtype) > 0, selection_guard(out, taken), out)
 
@@ -201,43 +240,41 @@ class ContactEvaluation(ModeIndexed):
         k = pick_values(row_by_mode(mode, hit, jnp.int32), slot[None], 0)[0]
         kin = self._kinematics(t, y, args)
         e = self._restitution(args, y.dtype)
-        tables = tuple(_by_mode(mode, tab.reshape(M, -1), y.dtype).reshape(tab.shape[1:])
-                       for tab in self._choice_tables())
+        tables = tuple(_by_mode(mode, tab, y.dtype) for tab in self._choice_tables())
         pick = self._choice(k, kin, e, *tables)
         row = row_by_mode(mode, redirect.reshape(M, -1), jnp.int32)
         taken = pick_values(row, (slot * C1 + pick + 1)[None], 0)[0]
         is_selected = pick_values(row_by_mode(mode, selected, y.dtype), slot[None], 0.0)[0] > 0
         return jnp.where(is_selected, taken, slot)
 
+    def _groups(self) -> list:
+        """Per mode, `choice_groups` of its slots: a selection guard's choice is its impact's."""
+        return [choice_groups([sp.choice.hit if sp.kind == SELECTED else None for sp in specs])
+                for specs in self.slots]
+
     def _located_tables(self):
         """`_slot_tables`' index and offset with every selection guard but the first of each
         impact reading the constant +1 (the zero entry plus an offset of 1)."""
-        index, offset, selected, hit, _ = self._slot_tables()
+        index, offset, *_ = self._slot_tables()
         index, offset = index.copy(), offset.copy()
         zero = len(self.scene.constraints) + len(self._rows()[0])
-        for m in range(index.shape[0]):
-            seen = set()
-            for s in range(index.shape[1]):
-                if selected[m, s]:
-                    if hit[m, s] in seen:
-                        index[m, s], offset[m, s] = zero, 1.0
-                    seen.add(hit[m, s])
+        for m, groups in enumerate(self._groups()):
+            for s, (_, first) in enumerate(groups):
+                if not first:
+                    index[m, s], offset[m, s] = zero, 1.0
         return index, offset
 
     def _redirect_table(self):
         """(modes, S, C + 1): for a selection guard, the slot of its impact that takes each
         outcome (column 0: none solves it; column c + 1: candidate c); the slot itself
         elsewhere."""
-        _, _, selected, hit, chosen = self._slot_tables()
+        *_, chosen = self._slot_tables()
         M, S, C1 = chosen.shape
         redirect = np.broadcast_to(np.arange(S)[None, :, None], (M, S, C1)).copy()
-        for m in range(M):
-            for s in range(S):
-                if not selected[m, s]:
-                    continue
-                for s2 in range(S):
-                    if selected[m, s2] and hit[m, s2] == hit[m, s]:
-                        redirect[m, s, chosen[m, s2] > 0] = s2
+        for m, groups in enumerate(self._groups()):
+            for s, (members, _) in enumerate(groups):
+                for s2 in members:  # a slot of its own takes no candidate
+                    redirect[m, s, chosen[m, s2] > 0] = s2
         return redirect
 
     def _slot_tables(self):
@@ -290,19 +327,14 @@ class ContactEvaluation(ModeIndexed):
         impact one gap or two are closed, so a loop over those needed costs one or two solves
         where a solve of every constraint costs K (under `jax.vmap`, the loop runs as often as
         the execution that needs the most)."""
-        K, R = len(self.scene.constraints), len(self._rows()[0])
-        held, present, gap_rows, involved = self._choice_tables()
-        C = held.shape[2]
-        held = _by_mode(mode, held.reshape(held.shape[0], -1), dtype).reshape(K, C * R)
-        present = _by_mode(mode, present.reshape(present.shape[0], -1), dtype).reshape(K, C)
-        gap_rows = _by_mode(mode, gap_rows.reshape(gap_rows.shape[0], -1), dtype).reshape(K, R)
-        involved = _by_mode(mode, involved.reshape(involved.shape[0], -1), dtype).reshape(K, R)
+        K = len(self.scene.constraints)
+        tables = tuple(_by_mode(mode, tab, dtype) for tab in self._choice_tables())
         e = self._restitution(args, dtype)
 
         def body(carry):
             picks, left = carry
             k = jnp.argmax(left)
-            pick = self._choice(k, kin, e, held.reshape(K, C, R), present, gap_rows, involved)
+            pick = self._choice(k, kin, e, *tables)
             mine = jnp.arange(K) == k
             return jnp.where(mine, pick, picks), left & ~mine
 
@@ -319,24 +351,33 @@ class ContactEvaluation(ModeIndexed):
         hit = (jnp.arange(R) == k).astype(dtype)  # constraint k's restitution on its gap row alone
         return release_choice(kin, h.reshape(C, R), hit * e, i > 0, g > 0, self.least_norm, present=p > 0)
 
-    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
-        n = self.scene.dim
+    def _reset_tables(self):
         _, owners = self._rows()
         specs = self.resets
         held = np.asarray([[float(r.held is not None and o in r.held) for o in owners] for r in specs])
         is_impact = np.asarray([r.held is not None for r in specs])
         hit = np.asarray([[float(r.held is not None and i == r.hit) for i in range(len(owners))]
                           for r in specs])
-        e = jnp.asarray(hit, y.dtype)[k] * self._restitution(args, y.dtype)
-        kin = self._kinematics(t, y, args)
-        dq_plus, _, _ = impact_map(kin, jnp.asarray(held, y.dtype)[k], e, self.least_norm)
-        x = jnp.concatenate([y[:n], jnp.where(jnp.asarray(is_impact)[k], dq_plus, y[n:])])
+        return held, is_impact, hit, self.least_norm
+
+    def reset(self, k, t, y, args) -> jax.Array:  # once per event: tables read by index
+        x = super().reset(k, t, y, args)
         if not self.relabel_maps:
             return x
-        which = jnp.asarray([r.relabel + 1 for r in specs], jnp.int32)[k]
+        which = jnp.asarray([r.relabel + 1 for r in self.resets], jnp.int32)[k]
         return dispatch(which, [lambda t, x, args: x, *self.relabel_maps], t, x, args)
 
 
+def choice_groups(keys: list) -> list:
+    """Per slot of one mode, from each slot's choice (`keys[s]`, None for a slot of its own):
+    the slots of the same choice, and whether the slot is the first of them (the one located
+    on the value they share, `ModeIndexed.locate_watch`)."""
+    keys = [("own", s) if key is None else key for s, key in enumerate(keys)]
+    return [([s2 for s2, k2 in enumerate(keys) if k2 == key], keys.index(key) == s)
+            for s, key in enumerate(keys)]
+
+
 def _by_mode(mode, table, dtype) -> jax.Array:
-    """Row `mode` of the constant (modes, m) `table` (`kernels.row_by_mode`)."""
-    return row_by_mode(mode, np.asarray(table), dtype)
+    """Entry `mode` of the constant (modes, ...) `table` (`kernels.row_by_mode` of its rows)."""
+    table = np.asarray(table)
+    return row_by_mode(mode, table.reshape(len(table), -1), dtype).reshape(table.shape[1:])
