@@ -35,6 +35,8 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
+import numpy as np
 
 HELD, STICK, SLIP_POS, SLIP_NEG = "held", "stick", "slip+", "slip-"
 
@@ -44,12 +46,17 @@ def _value(x, args):
     return x(args) if callable(x) else x
 
 
+def _concrete(x) -> bool:
+    """A number (or a scalar array with a value) rather than a function or a traced value."""
+    return not callable(x) and not isinstance(x, jax.core.Tracer)
+
+
 def check_coefficient(owner: str, field: str, x, upper: float | None = None) -> None:
     """A coefficient is a number >= 0 (and <= `upper`) or a function of args; the error names
-    `owner` and `field`."""
-    if callable(x):
+    `owner` and `field`. A traced value is checked where the build reads it."""
+    if not _concrete(x):
         return
-    number = not isinstance(x, bool) and isinstance(x, (int, float))
+    number = not isinstance(x, bool) and np.ndim(x) == 0 and np.issubdtype(np.asarray(x).dtype, np.number)
     if not number or not x >= 0 or (upper is not None and x > upper):
         bound = ">= 0" if upper is None else f"in [0, {upper:g}]"
         raise ValueError(f"{owner}: `{field}` must be a number {bound} or a function of args, got {x!r}.")
@@ -236,8 +243,7 @@ class StaticKineticCoulomb(_AbstractStickSlip):
     def __check_init__(self):
         check_coefficient("StaticKineticCoulomb", "mu_static", self.mu_static)
         check_coefficient("StaticKineticCoulomb", "mu_kinetic", self.mu_kinetic)
-        numbers = not callable(self.mu_static) and not callable(self.mu_kinetic)
-        if numbers and self.mu_static < self.mu_kinetic:
+        if _concrete(self.mu_static) and _concrete(self.mu_kinetic) and self.mu_static < self.mu_kinetic:
             raise ValueError(
                 f"StaticKineticCoulomb: `mu_static` must be >= `mu_kinetic`, got {self.mu_static!r} < "
                 f"{self.mu_kinetic!r}."
