@@ -1,7 +1,8 @@
-r"""Coulomb friction in scenes: stick and slip modes of frictional contacts.
+r"""Friction in scenes: stick and slip modes of frictional contacts.
 
-A unilateral `Constraint` with a `tangent` $b(t, q)$ and a `friction` coefficient $\mu \ge 0$
-is, while held, in one of three states, each part of the mode (named `"left:stick"`,
+A unilateral `Constraint` with a `tangent` $b(t, q)$ and a stick-slip tangential law (`laws`:
+Coulomb's with $\mu \ge 0$, or any law giving a slip coefficient and stick limits) is, while
+held, in one of three states, each part of the mode (named `"left:stick"`,
 `"left:slip+"`, `"left:slip-"`; frictionless contacts keep their bare name):
 
 - stick: $\dot b = 0$ held with the gap (the tangent row of the KKT system), its force
@@ -9,6 +10,11 @@ is, while held, in one of three states, each part of the mode (named `"left:stic
 - slip $s = \pm 1$ ($s \dot b > 0$): $M \ddot q = f + J_n^\top \lambda_n + J_t^\top (-\mu s
   \lambda_n)$, $J_n \ddot q = -\dot J_n \dot q$: the normal row only, its generalised force
   column $(J_n - \mu s J_t)^\top$, smooth within the mode.
+
+Below, $\mu$ is the law's: in a slipping state's force its $\mu_\text{slip}$, in the cone
+$-\mu_\text{stick}(+1) \lambda_n \le \lambda_t \le \mu_\text{stick}(-1) \lambda_n$ its stick limits,
+and in the stick $\to$ slip $d$ guard $\mu_\text{stick}(d)$ (`Coefficients`; Coulomb's law: all
+$\mu$).
 
 Guards (A. M. Johnson, "Hybrid Dynamical Systems", section 1.1: the modes are the contact
 conditions, each boundary of a domain a guard):
