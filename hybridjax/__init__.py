@@ -66,6 +66,14 @@ from ._rules.locate import BracketedNewton as BracketedNewton
 from ._rules.options import EventOptions as EventOptions
 from ._rules.options import SolveOptions as SolveOptions
 from ._scenes.build import contact_system as contact_system
+from ._scenes.laws import AbstractImpactLaw as AbstractImpactLaw
+from ._scenes.laws import AbstractTangentialLaw as AbstractTangentialLaw
+from ._scenes.laws import Coulomb as Coulomb
+from ._scenes.laws import Frictionless as Frictionless
+from ._scenes.laws import Newton as Newton
+from ._scenes.laws import Plastic as Plastic
+from ._scenes.laws import StaticKineticCoulomb as StaticKineticCoulomb
+from ._scenes.laws import Sticking as Sticking
 from ._scenes.scene import Constraint as Constraint
 from ._scenes.scene import ContactSystem as ContactSystem
 from ._scenes.scene import Relabel as Relabel

@@ -1,7 +1,8 @@
-r"""Coulomb friction in scenes: stick and slip modes of frictional contacts.
+r"""Friction in scenes: stick and slip modes of frictional contacts.
 
-A unilateral `Constraint` with a `tangent` $b(t, q)$ and a `friction` coefficient $\mu \ge 0$
-is, while held, in one of three states, each part of the mode (named `"left:stick"`,
+A unilateral `Constraint` with a `tangent` $b(t, q)$ and a stick-slip tangential law (`laws`:
+Coulomb's with $\mu \ge 0$, or any law giving a slip coefficient and stick limits) is, while
+held, in one of three states, each part of the mode (named `"left:stick"`,
 `"left:slip+"`, `"left:slip-"`; frictionless contacts keep their bare name):
 
 - stick: $\dot b = 0$ held with the gap (the tangent row of the KKT system), its force
@@ -9,6 +10,11 @@ is, while held, in one of three states, each part of the mode (named `"left:stic
 - slip $s = \pm 1$ ($s \dot b > 0$): $M \ddot q = f + J_n^\top \lambda_n + J_t^\top (-\mu s
   \lambda_n)$, $J_n \ddot q = -\dot J_n \dot q$: the normal row only, its generalised force
   column $(J_n - \mu s J_t)^\top$, smooth within the mode.
+
+Below, $\mu$ is the law's: in a slipping state's force its $\mu_\text{slip}$, in the cone
+$-\mu_\text{stick}(+1) \lambda_n \le \lambda_t \le \mu_\text{stick}(-1) \lambda_n$ its stick limits,
+and in the stick $\to$ slip $d$ guard $\mu_\text{stick}(d)$ (`Coefficients`; Coulomb's law: all
+$\mu$).
 
 Guards (A. M. Johnson, "Hybrid Dynamical Systems", section 1.1: the modes are the contact
 conditions, each boundary of a domain a guard):
@@ -53,7 +59,7 @@ from .._definition.kernels import pick_values, select_by_mode
 from .._definition.system import Mode, Transition
 from .graph import ContactGraph, ExploreRules, Leaving, explore
 from .indexed import SceneEvaluation, _by_mode, choice_groups
-from .laws import HELD, SLIP_NEG, SLIP_POS, STICK
+from .laws import HELD, SLIP_NEG, SLIP_POS, STICK, slip_state
 from .mechanics import (
     _INDEPENDENT,
     armed_values,
@@ -113,10 +119,53 @@ def _layout(scene: Scene):
     return fns, owners, tan, friction, unilateral
 
 
-def friction_coefficients(scene: Scene, args, dtype) -> jax.Array:
-    r"""$\mu_k$ of every constraint (0 where it has none)."""
-    mus = [jnp.reshape(jnp.asarray(c.tangential_law.coefficient(args), dtype), ()) for c in scene.constraints]
-    return jnp.stack(mus)
+class Coefficients(NamedTuple):
+    r"""The constraints' tangential laws under `args`, in columns for $+1$ and $-1$: `slip`
+    (K, 2), $\mu_\text{slip}$ of the state slipping with sign $s$; `stick` (K, 2), the stick
+    limit $\mu_\text{stick}(d)$ for the slip direction $d$ (0 where a law has none)."""
+
+    slip: jax.Array
+    stick: jax.Array
+
+
+def friction_coefficients(scene: Scene, args, dtype) -> Coefficients:
+    """The `Coefficients` of every constraint's tangential law under `args`."""
+
+    def scalar(x):
+        return jnp.reshape(jnp.asarray(x, dtype), ())
+
+    slip, stick = [], []
+    for c in scene.constraints:
+        law = c.tangential_law
+        states = [slip_state(law, s) for s in (1.0, -1.0)]
+        slip.append([scalar(0.0 if st is None else law.slip_coefficient(st, args)) for st in states])
+        stick.append([scalar(law.stick_limit(d, args)) for d in (1.0, -1.0)])
+    return Coefficients(jnp.stack([jnp.stack(r) for r in slip]), jnp.stack([jnp.stack(r) for r in stick]))
+
+
+def slip_mu(coef: Coefficients, sign) -> jax.Array:
+    r"""(K,): $\mu_\text{slip}$ of each contact slipping with sign `sign` (K,)."""
+    return jnp.where(sign > 0, coef.slip[:, 0], coef.slip[:, 1])
+
+
+def stick_mu(coef: Coefficients, d) -> jax.Array:
+    r"""(K,): the stick limit $\mu_\text{stick}(d)$ of each contact for the slip direction `d`
+    (a number or (K,))."""
+    return jnp.where(d > 0, coef.stick[:, 0], coef.stick[:, 1])
+
+
+def cone_margin(coef: Coefficients, lam_n, lam_t) -> jax.Array:
+    r"""(K,): $\min_d (\mu_\text{stick}(d) \lambda_n + d \lambda_t)$, $\ge 0$ where the sticking
+    force is in the cone (Coulomb's law: $\mu \lambda_n - |\lambda_t|$)."""
+    return jnp.minimum(coef.stick[:, 0] * lam_n + lam_t, coef.stick[:, 1] * lam_n - lam_t)
+
+
+def in_cone(coef: Coefficients, lam_n, lam_t) -> jax.Array:
+    r"""Where $-\mu_\text{stick}(+1) \lambda_n \le \lambda_t \le \mu_\text{stick}(-1) \lambda_n$
+    (the last axis: the K contacts; Coulomb's law: $|\lambda_t| \le \mu \lambda_n$)."""
+    shape = (1,) * (jnp.ndim(lam_n) - 1) + (-1,)
+    pos, neg = coef.stick[:, 0].reshape(shape), coef.stick[:, 1].reshape(shape)
+    return (-lam_t <= pos * lam_n) & (lam_t <= neg * lam_n)
 
 
 def state_name(scene: Scene, state: tuple) -> str:
@@ -233,9 +282,10 @@ def slip_consistency(scene: Scene, rows_mask, sign, t, q, args):
 
 def force_columns(scene: Scene, J, mu, sign):
     r"""$W$: the rows' generalised force directions, $J$ except on a slipping contact's normal
-    row, $W_k = J_k - \mu_k s_k J_{t,k}$."""
+    row, $W_k = J_k - \mu_k s_k J_{t,k}$, $\mu_k$ its law's $\mu_\text{slip}$ (`mu`: the
+    `Coefficients`)."""
     K, tan = len(scene.constraints), _layout(scene)[2]
-    return J.at[:K].add(-(mu * sign)[:, None] * (jnp.asarray(tan, J.dtype) @ J))
+    return J.at[:K].add(-(slip_mu(mu, sign) * sign)[:, None] * (jnp.asarray(tan, J.dtype) @ J))
 
 
 def consistency(scene: Scene, kin, mu, rows_mask, sign):
@@ -281,7 +331,8 @@ def stop_decision(scene: Scene, state: tuple, j: int, kin, mu, dq):
         _, rows_mask, sign = _state_arrays(scene, stuck)
         lam = friction_acceleration(scene, kin, mu, jnp.asarray(rows_mask, kin.J.dtype),
                                     jnp.asarray(sign, kin.J.dtype), bool(rows_mask.sum() > scene.dim))[1]
-        ok = jnp.all(jnp.stack([jnp.abs(lam[row[i]]) <= mu[i] * lam[i] for i in (j, *members)]))
+        inside_all = in_cone(mu, lam[:len(state)], jnp.stack([lam[r] for r in row]))
+        ok = jnp.all(jnp.stack([inside_all[i] for i in (j, *members)]))
         which, inside = jnp.where(match, c, which), jnp.where(match, ok, inside)
     return which, inside
 
@@ -330,13 +381,13 @@ class _StateFunctions(eqx.Module):
         return lambda t, x, args: self.solve(t, x, args)[1][j] + offset
 
     def cone(self, j, d, offset=0.0):
-        """mu lambda_n + d lambda_t of sticking contact j (+ offset): its guard into slip d."""
+        """mu_stick(d) lambda_n + d lambda_t of sticking contact j (+ offset): its guard into slip d."""
         tan = _layout(self.scene)[2]
         r = int(np.argmax(tan[j]))
 
         def g(t, x, args):
             lam = self.solve(t, x, args)[1]
-            mu = friction_coefficients(self.scene, args, x.dtype)[j]
+            mu = friction_coefficients(self.scene, args, x.dtype).stick[j, 0 if d > 0 else 1]
             return mu * lam[j] + d * lam[r] + offset
 
         return g
@@ -384,11 +435,11 @@ class _StateFunctions(eqx.Module):
 
     def forces(self, t, x, args):
         """Row forces: normal forces, then tangential ones (a slipping contact's friction
-        force -mu s lambda_n), 0 on rows not held."""
+        force -mu_slip s lambda_n), 0 on rows not held."""
         rows_mask, sign = self._arrays(x.dtype)
         lam = self.solve(t, x, args)[1]
         K = len(self.scene.constraints)
-        friction = -friction_coefficients(self.scene, args, x.dtype) * sign * lam[:K]
+        friction = -slip_mu(friction_coefficients(self.scene, args, x.dtype), sign) * sign * lam[:K]
         return lam * rows_mask + jnp.asarray(_layout(self.scene)[2], x.dtype).T @ friction
 
 
@@ -411,7 +462,9 @@ class _FrictionImpact(eqx.Module):
         return tuple(sorted(held))
 
     def frictional(self, c) -> tuple:
-        return tuple(i for i in self.new_set(c) if self.scene.constraints[i].friction is not None)
+        """The contacts of the new set whose tangential law has several states."""
+        friction = _layout(self.scene)[3]
+        return tuple(i for i in self.new_set(c) if friction[i])
 
     @property
     def outcomes(self) -> tuple:
@@ -425,8 +478,9 @@ class _FrictionImpact(eqx.Module):
         c, signs = outcome
         held = set(self.new_set(c))
         slip = dict(zip(self.frictional(c), signs, strict=True))
+        laws = [c.tangential_law for c in self.scene.constraints]
         return tuple(
-            None if i not in held else ({1.0: SLIP_POS, -1.0: SLIP_NEG}[slip[i]] if i in slip else HELD)
+            None if i not in held else (slip_state(laws[i], slip[i]) if i in slip else HELD)
             for i in range(len(self.scene.constraints))
         )
 
@@ -578,12 +632,13 @@ def _friction_queries(scene: Scene, margin: float):
                 where(Q.hit, armed),
                 where(slipping * (1 - stopping), s * v_t),
                 where(uni * Q.held * Q.flowing * (1 - Q.lift), lam_n),
-                where(stuck * Q.flowing * (1 - Q.unstick), mu * lam_n - jnp.abs(lam_t)),
+                where(stuck * Q.flowing * (1 - Q.unstick), cone_margin(mu, lam_n, lam_t)),
                 where(Q.lift, -lam_n - margin),
-                where(Q.unstick, -(mu * lam_n + Q.direction * lam_t) - margin),
+                where(Q.unstick, -(stick_mu(mu, Q.direction) * lam_n + Q.direction * lam_t) - margin),
                 where(Q.stop, -s * acc_t - margin),
-                where(stopping * Q.to_stick, mu * lam2_n - jnp.abs(lam2_t)),
-                where(Q.stop * (1 - Q.to_stick), s * lam2_t - mu * lam2_n - margin),
+                where(stopping * Q.to_stick, cone_margin(mu, lam2_n, lam2_t)),
+                # It slips back (direction -s) where the sticking force leaves the cone on that side.
+                where(Q.stop * (1 - Q.to_stick), s * lam2_t - stick_mu(mu, -s) * lam2_n - margin),
                 where(Q.hit, -rate[:K] - margin),
                 where(Q.impact_rows[:K] * uni, P[:K]),
                 where(Q.released, rates_plus[:K]),
@@ -743,18 +798,24 @@ class _Rules(ExploreRules):
 
 
 def _check_values(scene: Scene, values: list) -> None:
-    """The scene's shapes and the friction coefficients (>= 0) at every `args` value."""
+    """The scene's shapes, and the tangential laws' coefficients (>= 0, and the law's own
+    `check`) at every `args` value."""
     if not values:
         raise ValueError("contact_system: `args_values` is empty.")
     dtype = jnp.result_type(float)
     for v in values:
         scene.check(v)
-        mus = np.asarray(friction_coefficients(scene, v, dtype))
+        coef = friction_coefficients(scene, v, dtype)
+        mus = np.concatenate([np.asarray(coef.slip), np.asarray(coef.stick)], axis=1)
         for c, mu in zip(scene.constraints, mus, strict=True):
-            if c.friction is not None and not mu >= 0:
+            bad = next((m for m in mu if not m >= 0), None)
+            if bad is not None:
                 raise ValueError(
-                    f"Constraint '{c.name}': the friction coefficient must be >= 0, got {mu} for args {v!r}."
+                    f"Constraint '{c.name}': the friction coefficient must be >= 0, got {bad} for args {v!r}."
                 )
+            problem = c.tangential_law.check(v)
+            if problem is not None:
+                raise ValueError(f"Constraint '{c.name}': {problem} for args {v!r}.")
 
 
 def _initial_states(scene: Scene, rules: _Rules, initial: Sequence, values: list) -> list:
@@ -856,7 +917,7 @@ class _Parts(NamedTuple):
     consistency where a mode watches it (else None)."""
 
     kin: Any
-    mu: jax.Array
+    mu: Coefficients
     ddq: jax.Array
     lam: jax.Array
     rows_mask: jax.Array
@@ -930,7 +991,8 @@ class FrictionEvaluation(SceneEvaluation):
         if sp.kind == "lift":
             return parts.lam[sp.j] + sp.offset
         if sp.kind == "cone":
-            return parts.mu[sp.j] * parts.lam[sp.j] + sp.d * parts.lam[row] + sp.offset
+            mu = parts.mu.stick[sp.j, 0 if sp.d > 0 else 1]
+            return mu * parts.lam[sp.j] + sp.d * parts.lam[row] + sp.offset
         if sp.kind not in ("impact", "stop"):
             return jnp.asarray(sp.offset, parts.kin.dq.dtype)
         value = parts.gaps[sp.j] if sp.kind == "impact" else SIGN[sp.state[sp.j]] * parts.rate[row]
@@ -1098,7 +1160,7 @@ class FrictionEvaluation(SceneEvaluation):
             rows_t, sign_t, least_t
         )
         lam_n, lam_t = lam[..., :K], lam @ tan.T
-        ok = jnp.all(~members | (jnp.abs(lam_t) <= mu[None, None, :] * lam_n), axis=-1)
+        ok = jnp.all(~members | in_cone(mu, lam_n, lam_t), axis=-1)
         # A candidate matches where exactly its other members are stopped (j itself is a member).
         match = jnp.all(~others[:, None, :] | (stopped[:, None, :] == members), axis=-1) & present
         which = jnp.where(jnp.any(match, axis=1), jnp.argmax(match, axis=1), -1)

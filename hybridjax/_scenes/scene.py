@@ -156,17 +156,21 @@ class Constraint(eqx.Module):
     - `kind`: `"unilateral"` ($a \ge 0$, a contact that can open and close) or `"bilateral"`
       ($a = 0$ always, a joint or a pinned foot, held in every mode).
     - `restitution`: the impact law of a unilateral constraint: `None` (plastic, the default),
-      a number $e \in [0, 1]$, or `restitution(args) -> e`. With $e > 0$ the contact separates
+      a number $e \in [0, 1]$, `restitution(args) -> e` (Newton's law with that $e$), or an
+      `AbstractImpactLaw` (`hj.Plastic()`, `hj.Newton(e)`). With $e > 0$ the contact separates
       after its impact (Newton's law $\dot a^+ = -e \dot a^-$) and is not added to the contact
       set.
     - `tangent`: optional `tangent(t, q, args) -> scalar`, the contact point's coordinate along
       the surface, for a contact that sticks while it is held (a foot that does not slip,
       unlimited friction): its rate $\dot b$ is held at 0 with the gap (the impact stops it
       too), its force $\lambda_t$ is free in sign, and it is released with the gap.
-    - `friction`: optional Coulomb coefficient $\mu \ge 0$ (a number or `friction(args) -> mu`)
-      of a unilateral contact with a `tangent`: the contact then sticks ($\dot b = 0$ held,
-      $|\lambda_t| \le \mu \lambda_n$) or slips ($\lambda_t = -\mu\, \mathrm{sign}(\dot b)
-      \lambda_n$), each a mode (`"name:stick"`, `"name:slip+"`, `"name:slip-"`); see `contact_system`.
+    - `friction`: optional tangential law of a unilateral contact with a `tangent`: a Coulomb
+      coefficient $\mu \ge 0$ (a number or `friction(args) -> mu`, `hj.Coulomb(mu)`), or an
+      `AbstractTangentialLaw` (`hj.Coulomb`, `hj.StaticKineticCoulomb`, one of the user's). With
+      Coulomb's law the contact sticks ($\dot b = 0$ held, $|\lambda_t| \le \mu \lambda_n$) or
+      slips ($\lambda_t = -\mu\, \mathrm{sign}(\dot b) \lambda_n$), each a mode (`"name:stick"`,
+      `"name:slip+"`, `"name:slip-"`); see `contact_system`. `hj.Sticking()` is a `tangent`
+      alone; `hj.Frictionless()`, a contact without a `tangent`.
     - `armed`: optional `armed(t, q, args) -> scalar` $c$ of a unilateral contact: it can be hit
       only where $c \ge 0$. Its impact guard is $\max(a, -c) \le 0$ (the gap closed while the
       contact is armed); where $c < 0$ the gap may be negative (a walker's swing foot passing
@@ -185,9 +189,9 @@ class Constraint(eqx.Module):
     name: str = eqx.field(static=True)
     fn: Callable = eqx.field(static=True)
     kind: str = eqx.field(static=True, default=UNILATERAL)
-    restitution: float | Callable | None = None
+    restitution: float | Callable | AbstractImpactLaw | None = None
     tangent: Callable | None = eqx.field(static=True, default=None)
-    friction: float | Callable | None = None
+    friction: float | Callable | AbstractTangentialLaw | None = None
     armed: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
@@ -209,24 +213,28 @@ class Constraint(eqx.Module):
         e = self.restitution
         if e is not None and self.kind == BILATERAL:
             raise ValueError(f"Constraint '{self.name}': a bilateral constraint has no restitution.")
-        if e is not None and not callable(e):
+        if e is not None and not callable(e) and not isinstance(e, AbstractImpactLaw):
             if isinstance(e, bool) or not isinstance(e, (int, float)) or not 0.0 <= e <= 1.0:
                 raise ValueError(
-                    f"Constraint '{self.name}': `restitution` must be None, a number in [0, 1] or "
-                    f"a function of args, got {e!r}."
+                    f"Constraint '{self.name}': `restitution` must be None, a number in [0, 1], a "
+                    f"function of args or an AbstractImpactLaw, got {e!r}."
                 )
 
     @property
     def impact_law(self) -> AbstractImpactLaw:
-        """The impact law the builders read, from `restitution`: plastic ($e = 0$) where it is None,
-        Newton's law with $e$ = `restitution` otherwise."""
+        """The impact law the builders read: `restitution` where it is a law, plastic ($e = 0$)
+        where it is None, Newton's law with $e$ = `restitution` otherwise."""
+        if isinstance(self.restitution, AbstractImpactLaw):
+            return self.restitution
         return Plastic() if self.restitution is None else Newton(self.restitution)
 
     @property
     def tangential_law(self) -> AbstractTangentialLaw:
-        r"""The tangential law the builders read, from `tangent` and `friction`: Coulomb's with
-        $\mu$ = `friction` where it is given (stick, slip+, slip-), sticking where a `tangent` is
-        given alone, frictionless otherwise."""
+        r"""The tangential law the builders read: `friction` where it is a law, Coulomb's with
+        $\mu$ = `friction` where it is a number or a function (stick, slip+, slip-), sticking
+        where a `tangent` is given alone, frictionless otherwise."""
+        if isinstance(self.friction, AbstractTangentialLaw):
+            return self.friction
         if self.friction is not None:
             return Coulomb(self.friction)
         return Sticking() if self.tangent is not None else Frictionless()
@@ -242,16 +250,25 @@ class Constraint(eqx.Module):
 
 
 def _check_friction(c: "Constraint") -> None:
-    """A friction coefficient needs a unilateral contact with a tangent, and is >= 0."""
+    """`friction` needs a unilateral contact with a tangent, and a coefficient is >= 0; a law
+    with one state that holds no tangent row (`Frictionless`) needs no tangent."""
     mu = c.friction
     if mu is None:
         return
-    if c.kind != UNILATERAL or c.tangent is None:
+    law = mu if isinstance(mu, AbstractTangentialLaw) else None
+    rowless = law is not None and len(law.states) == 1 and not law.holds_tangent(law.states[0])
+    if c.kind != UNILATERAL or (c.tangent is None and not rowless):
         raise ValueError(f"Constraint '{c.name}': `friction` needs a unilateral constraint with a `tangent`.")
-    if not callable(mu) and (isinstance(mu, bool) or not isinstance(mu, (int, float)) or not mu >= 0.0):
+    if rowless and c.tangent is not None:
         raise ValueError(
-            f"Constraint '{c.name}': the friction coefficient must be a number >= 0 or a function of "
-            f"args, got {mu!r}."
+            f"Constraint '{c.name}': `friction={law!r}` holds no tangent row: leave `tangent` None."
+        )
+    if law is None and not callable(mu) and (
+        isinstance(mu, bool) or not isinstance(mu, (int, float)) or not mu >= 0.0
+    ):
+        raise ValueError(
+            f"Constraint '{c.name}': the friction coefficient must be a number >= 0, a function of "
+            f"args or an AbstractTangentialLaw, got {mu!r}."
         )
 
 
