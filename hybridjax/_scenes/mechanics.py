@@ -5,6 +5,7 @@ per-mode functions of a built system, its mode-indexed evaluation and the point 
 The solves are elementwise (`_core.small_linalg`): no LAPACK call per lane.
 """
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -257,7 +258,13 @@ def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
 
 
 def independence(scene, fns, held, t, q, args):
-    r"""`gram_independence` of the constraints `fns` at (t, q) (no velocity needed)."""
+    r"""`gram_independence` of the constraints `fns` at (t, q) (no velocity needed), as one
+    compiled computation (the builder calls it outside any trace: op by op, each of its
+    operations would be compiled on its own)."""
+    return jax.jit(functools.partial(_independence, scene, fns))(held, t, q, args)
+
+
+def _independence(scene, fns, held, t, q, args):
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
     G = J @ small_linalg.spd_solve(M, J.T)
