@@ -42,9 +42,10 @@ def constraint_kinematics(fns, t, q, dq, args):
     t = jnp.asarray(t, q.dtype)
     gap = lambda t_, q_: _gaps(fns, t_, q_, args)
     J = jax.jacfwd(gap, argnums=1)(t, q)
-    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))[1]
-    adot, bias = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
-    return gap(t, q), J, adot, bias
+    # (a, a') and its derivative along (1, dq), (a', a''): one nested jvp gives all three.
+    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))
+    (a, adot), (_, bias) = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
+    return a, J, adot, bias
 
 
 def schur_solve(v, W, G, J, bottom, mask, least_norm=False):
