@@ -540,6 +540,11 @@ def _scene_compile(row: dict, form: str) -> float:
     return row.get(f"{form}_compile_cpu_s", row[f"{form}_compile_s"])
 
 
+def _cpu(row: dict, key: str) -> str:
+    """The text " (x s CPU)" where the results have the process CPU time `key`, else nothing."""
+    return f" ({row[key]:.1f} s CPU)" if key in row else ""
+
+
 def scenes(res: dict) -> list[str]:
     out = _page("scenes", "Scenes: contact sets built and cost", res, "scenes.py",
                 f"A point inside a regular polygon of K walls (`hj.examples.polygon_particle(K)`), plastic impacts, "
@@ -579,8 +584,9 @@ def scenes(res: dict) -> list[str]:
     if "walker" in res:
         w = res["walker"]
         out += ["", "The compass-gait walker (`hj.examples.compass_gait_scene()`, relabelled legs): "
-                f"{w['modes']} modes, {w['transitions']} transitions; build {w['mask_build_s']:.1f} s, first "
-                f"`hj.simulate` compiled and run {w['walker_first_simulate_s']:.1f} s, batch compile "
+                f"{w['modes']} modes, {w['transitions']} transitions; build {w['mask_build_s']:.1f} s"
+                f"{_cpu(w, 'mask_build_cpu_s')}, first `hj.simulate` compiled and run "
+                f"{w['walker_first_simulate_s']:.1f} s{_cpu(w, 'walker_first_simulate_cpu_s')}, batch compile "
                 f"{w['mask_compile_s']:.1f} s ({w['mask_compile_cpu_s']:.1f} s CPU), "
                 f"{_rate(w['mask_exec_per_s'])} executions/s of T = 3 s."]
     return out

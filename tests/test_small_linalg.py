@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hybridjax._core.small_linalg import cholesky, det, least_squares, solve, spd_solve
+from hybridjax._core.small_linalg import cholesky, cholesky_inverse, det, least_squares, solve, spd_solve
 
 RNG = np.random.default_rng(0)
 
@@ -46,6 +46,15 @@ def test_cholesky_and_spd_solve_equal_lapack_and_a_dependent_gram_matrix_has_a_z
     Jd = np.vstack([J[:2], 2.0 * J[0] - J[1]])  # the third row a combination of the others
     last = cholesky(jnp.asarray(Jd @ Jd.T))[2][2]
     assert not np.isfinite(float(last)) or float(last) ** 2 < 1e-12 * float(np.max(np.diag(Jd @ Jd.T)))
+
+
+def test_cholesky_inverse_equals_the_inverse_of_lapacks_factor():
+    for n in (1, 2, 4, 7):
+        J = RNG.normal(size=(n, n + 2))
+        G = J @ J.T
+        X = np.asarray(cholesky_inverse(jnp.asarray(G)))
+        np.testing.assert_allclose(X, np.linalg.inv(np.linalg.cholesky(G)), rtol=1e-10, atol=1e-12)
+        assert np.all(np.triu(X, 1) == 0.0)  # lower triangular, exact zeros above the diagonal
 
 
 def test_least_squares_full_rank_and_least_norm():

@@ -650,7 +650,7 @@ def _friction_queries(scene: Scene, margin: float):
         eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
         return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
 
-    return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
+    return parts
 
 
 def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
@@ -684,8 +684,7 @@ def _query(scene: Scene, state: tuple, **kw) -> _FQuery:
 
 
 def _run(scene, queries, args_batch, samples, margin, search):
-    eq, ineq = _friction_queries(scene, margin)
-    return run_search(eq, ineq, queries, args_batch, samples, search)
+    return run_search(_friction_queries(scene, margin), queries, args_batch, samples, search)
 
 
 # ----------------------------------------------------------------------------- the system

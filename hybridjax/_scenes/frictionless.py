@@ -221,8 +221,9 @@ class _Query(eqx.Module):
 
 @functools.cache
 def _query_functions(scene: Scene, margin: float, least_norm: bool):
-    """The equalities and inequalities of every query (cached: later builds of one scene, with
-    other `args`, reuse the compiled search)."""
+    """The constraints of every query, one function `(t, x, (args, query)) -> (equalities,
+    inequalities)` (cached: later builds of one scene, with other `args`, reuse the compiled
+    search)."""
     K, n = len(scene.constraints), scene.dim
     fns, owners = rows(scene, range(K))
     unilateral = np.asarray([c.kind == UNILATERAL for c in scene.constraints], dtype=float)
@@ -260,13 +261,12 @@ def _query_functions(scene: Scene, margin: float, least_norm: bool):
         eq = jnp.where(jnp.isfinite(eq), eq, 1e6)
         return eq, jnp.where(jnp.isfinite(ineq), ineq, -1e6)
 
-    return (lambda t, x, p: parts(t, x, p)[0]), (lambda t, x, p: parts(t, x, p)[1])
+    return parts
 
 
 def _run_queries(scene, queries, args_batch, samples, margin, least_norm, search):
-    """find_point for every (query, args value): Witness with leading axes (Q, V)."""
-    eq, ineq = _query_functions(scene, margin, least_norm)
-    return run_search(eq, ineq, queries, args_batch, samples, search)
+    """The point search for every (query, args value): Witness with leading axes (Q, V)."""
+    return run_search(_query_functions(scene, margin, least_norm), queries, args_batch, samples, search)
 
 
 # ----------------------------------------------------------------------------- the contact graph

@@ -116,6 +116,9 @@ class SceneEvaluation(ModeIndexed):
         take restitution (T, rows), and the least-norm flag (a bool for all, or (T,))."""
 
     def flow(self, mode, t, y, args) -> jax.Array:
+        return _traced_once(type(self)._flow, self, mode, t, y, args)
+
+    def _flow(self, mode, t, y, args) -> jax.Array:
         n = self.scene.dim
         kin = self._kinematics(t, y, args)
         ddq, _ = self._acceleration(mode, kin, args, y.dtype)
@@ -222,6 +225,9 @@ class ContactEvaluation(SceneEvaluation):
         r"""`watch` with each impact's selection guards located on its gap $a_k$ alone: the
         first selection guard of an impact reads $a_k$, the others $+1$ (`_located_tables`);
         `select` takes the release choice at the event. No choice is solved while locating."""
+        return _traced_once(ContactEvaluation._locate_watch, self, mode, t, y, args)
+
+    def _locate_watch(self, mode, t, y, args) -> jax.Array:
         index, offset = self._located_tables()
         if index.shape[1] == 0:
             return jnp.zeros((0,), y.dtype)
@@ -366,6 +372,17 @@ class ContactEvaluation(SceneEvaluation):
             return x
         which = jnp.asarray([r.relabel + 1 for r in self.resets], jnp.int32)[k]
         return dispatch(which, [lambda t, x, args: x, *self.relabel_maps], t, x, args)
+
+
+@jax.jit(static_argnums=(0, 1))
+def _traced_once(method, evaluation, mode, t, y, args):
+    """`method(evaluation, mode, t, y, args)` as one jitted call, `evaluation` static (its
+    fields are static tables): an engine evaluates a flow or a guard at many places of a step
+    (every Runge-Kutta stage, every root-finding iteration, their derivatives), and each place
+    then reuses one trace of it, where a plain call would trace the scene's kinematics and
+    solves again. XLA inlines the calls, so the compiled program and its numbers are those of
+    plain calls."""
+    return method(evaluation, mode, t, y, args)
 
 
 def choice_groups(keys: list) -> list:

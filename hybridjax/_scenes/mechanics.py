@@ -5,6 +5,7 @@ per-mode functions of a built system, its mode-indexed evaluation and the point 
 The solves are elementwise (`_core.small_linalg`): no LAPACK call per lane.
 """
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -41,9 +42,10 @@ def constraint_kinematics(fns, t, q, dq, args):
     t = jnp.asarray(t, q.dtype)
     gap = lambda t_, q_: _gaps(fns, t_, q_, args)
     J = jax.jacfwd(gap, argnums=1)(t, q)
-    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))[1]
-    adot, bias = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
-    return gap(t, q), J, adot, bias
+    # (a, a') and its derivative along (1, dq), (a', a''): one nested jvp gives all three.
+    rate = lambda t_, q_: jax.jvp(gap, (t_, q_), (jnp.ones_like(t_), dq))
+    (a, adot), (_, bias) = jax.jvp(rate, (t, q), (jnp.ones_like(t), dq))
+    return a, J, adot, bias
 
 
 def schur_solve(v, W, G, J, bottom, mask, least_norm=False):
@@ -257,7 +259,13 @@ def impact(scene, fns, held, e, t, q, dq, args, least_norm=False):
 
 
 def independence(scene, fns, held, t, q, args):
-    r"""`gram_independence` of the constraints `fns` at (t, q) (no velocity needed)."""
+    r"""`gram_independence` of the constraints `fns` at (t, q) (no velocity needed), as one
+    compiled computation (the builder calls it outside any trace: op by op, each of its
+    operations would be compiled on its own)."""
+    return jax.jit(functools.partial(_independence, scene, fns))(held, t, q, args)
+
+
+def _independence(scene, fns, held, t, q, args):
     M = jnp.asarray(scene.mass(q, args), q.dtype)
     J = jax.jacfwd(lambda q_: _gaps(fns, jnp.asarray(t, q.dtype), q_, args))(q)
     G = J @ small_linalg.spd_solve(M, J.T)

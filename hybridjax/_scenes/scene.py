@@ -56,7 +56,8 @@ import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._analysis.search import SearchOptions, find_point
+from .._analysis.search import SearchOptions
+from .._analysis.search import search as point_search
 from .._core import small_linalg as small_linalg
 from .._core.names import one_of
 from .._definition.system import AbstractHybridSystem, Mode, Transition, validate_system
@@ -498,8 +499,10 @@ SEARCH_CHUNK = 8
 _SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 
-def run_search(eq, ineq, queries, args_batch, samples, search: SearchOptions):
-    """`_search` over `queries` in chunks of `SEARCH_CHUNK`: Witness with leading axes (Q, V)."""
+def run_search(constraints, queries, args_batch, samples, search: SearchOptions):
+    """`_search` over `queries` in chunks of `SEARCH_CHUNK`: Witness with leading axes (Q, V).
+    `constraints(t, x, (args, query)) -> (equalities, inequalities)`, one function, so that the
+    work the two share (the scene's kinematics and solves) is traced once."""
     ts, xs = samples
     count = len(queries)
     padded = -(-count // SEARCH_CHUNK) * SEARCH_CHUNK
@@ -509,19 +512,19 @@ def run_search(eq, ineq, queries, args_batch, samples, search: SearchOptions):
         stacked = jtu.tree_map(lambda *xs_: jnp.stack(xs_), *queries[start : start + SEARCH_CHUNK])
         operands = (ts, xs, stacked, args_batch)
         shapes = tuple((a.shape, a.dtype) for a in jtu.tree_leaves(operands))
-        run = _compiled_search(eq, ineq, search, jtu.tree_structure(operands), shapes, operands)
+        run = _compiled_search(constraints, search, jtu.tree_structure(operands), shapes, operands)
         outs.append(run(*operands))
     return jtu.tree_map(lambda *a: np.concatenate([np.asarray(b) for b in a])[:count], *outs)
 
 
-def _compiled_search(eq, ineq, search, structure, shapes, operands):
+def _compiled_search(constraints, search, structure, shapes, operands):
     """The search's executable for these constraint functions and operand shapes: compiled on
     first use (`_SEARCH_COMPILE`), then reused for every level and `args` value of the scene."""
-    key = (eq, ineq, search, structure, shapes)
+    key = (constraints, search, structure, shapes)
     if key not in _SEARCHES:
         if len(_SEARCHES) >= 8:
             _SEARCHES.pop(next(iter(_SEARCHES)))
-        fn = jax.jit(functools.partial(_search, eq, ineq, search=search))
+        fn = jax.jit(functools.partial(_search, constraints, search=search))
         _SEARCHES[key] = fn.trace(*operands).lower().compile(_SEARCH_COMPILE)
     return _SEARCHES[key]
 
@@ -529,14 +532,22 @@ def _compiled_search(eq, ineq, search, structure, shapes, operands):
 _SEARCHES: dict = {}
 
 
-def _search(eq, ineq, ts, xs, queries, args_batch, *, search):
-    def one(Q, args):
-        return find_point(eq, ineq, ts, xs, (args, Q), tol=search.tol, num_starts=search.num_starts,
-                          iterations=search.iterations)
-
-    # The index makes the inner vmap well defined for `args` without arrays (None).
+def _search(constraints, ts, xs, queries, args_batch, *, search):
+    """`analysis.search.search` for every (query, `args` value) pair, under one `jax.vmap` over
+    the Q * V pairs (a nested vmap would batch the least-squares solve's program twice)."""
+    # The index makes the vmap well defined for `args` without arrays (None).
     index, args_batch = args_batch
-    return jax.vmap(lambda Q: jax.vmap(lambda i, a: one(Q, a))(index, args_batch))(queries)
+    num_q, num_v = jtu.tree_leaves(queries)[0].shape[0], index.shape[0]
+    pair_q = jtu.tree_map(lambda a: jnp.repeat(a, num_v, axis=0), queries)
+    pair_a = jtu.tree_map(lambda a: jnp.tile(a, (num_q,) + (1,) * (a.ndim - 1)), (index, args_batch))
+
+    def one(Q, indexed):
+        _, args = indexed
+        return point_search(constraints, ts, xs, (args, Q), tol=search.tol, num_starts=search.num_starts,
+                            iterations=search.iterations)
+
+    out = jax.vmap(one)(pair_q, pair_a)
+    return jtu.tree_map(lambda a: a.reshape((num_q, num_v) + a.shape[1:]), out)
 
 
 # ----------------------------------------------------------------------------- the system
