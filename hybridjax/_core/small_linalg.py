@@ -100,11 +100,11 @@ def spd_solve(A, B):
 
 
 def cholesky_inverse(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
-    r"""$L^{-1}$ of the lower Cholesky factor $A = L L^\top$, the numbers of
-    `triangular_inverse(cholesky(A))` (the same products, summed in the same order), by columns
-    of $L$ and rows of $L^{-1}$: each step is a few elementwise operations on a vector, $O(s^2)$
-    operations in all where the scalar form has $O(s^3)$, so a program that solves such systems
-    at many places (a contact flow, at every stage of a step) is smaller to trace and compile.
+    r"""$L^{-1}$ of the lower Cholesky factor $A = L L^\top$, by columns of $L$ and rows of
+    $L^{-1}$ (forward substitution on the identity): each step is a few elementwise operations on
+    a vector, $O(s^2)$ operations in all where an element-by-element form has $O(s^3)$, so a
+    program that solves such systems at many places (a contact flow, at every stage of a step) is
+    smaller to trace and compile.
 
     Column j of $L$: $v = A_{j:, j} - \sum_{k<j} L_{j:, k} L_{jk}$, $L_{jj} = \sqrt{v_0}$,
     $L_{j+1:, j} = v_{1:} / L_{jj}$. Row i of $X = L^{-1}$: $X_{i, :i} = -\sum_{k<i} L_{ik}
@@ -134,20 +134,6 @@ def cholesky_inverse(A: Float[Array, "s s"]) -> Float[Array, "s s"]:
             acc = term if acc is None else acc + term
         rows.append(jnp.concatenate([-acc / diag[i], inv[None], jnp.zeros((s - i - 1,), A.dtype)]))
     return jnp.stack(rows)
-
-
-def triangular_inverse(L: list) -> Float[Array, "s s"]:
-    """$L^{-1}$ of a lower triangular factor given as rows of scalars (`cholesky`), by forward
-    substitution on the identity, unrolled: column j of $L^{-1}$ is zero above the diagonal,
-    $1 / L_{jj}$ on it, and $-\sum_{k=j}^{i-1} L_{ik} X_{kj} / L_{ii}$ below it."""
-    s = len(L)
-    zero = jnp.zeros_like(L[0][0])
-    X = [[zero] * s for _ in range(s)]
-    for j in range(s):
-        X[j][j] = 1.0 / L[j][j]
-        for i in range(j + 1, s):
-            X[i][j] = -sum((L[i][k] * X[k][j] for k in range(j, i)), zero) / L[i][i]
-    return jnp.stack([jnp.stack(row) for row in X])
 
 
 def least_squares(
