@@ -155,8 +155,8 @@ class EventRecord(eqx.Module):
 
 def _put_rows(arr, rows, value):
     """`arr` with the rows where `rows` (bool, arr.shape[0]) is True set to `value`: a masked
-    write, no scatter (under vmap a scatter with one index per execution is a serial loop on
-    CPU)."""
+    write, for the short per-execution arrays (a pass over a few rows costs less than a
+    scatter, which under vmap has one index per execution)."""
     m = rows.reshape(rows.shape + (1,) * (arr.ndim - 1))
     return jnp.where(m, jnp.asarray(value, arr.dtype), arr)
 
@@ -343,31 +343,31 @@ class Loop:
         )
 
     def flush(self, rec: EventRecord, st: LoopState) -> EventRecord:
-        """Write the pending events of this iteration into the record (`_put_rows`)."""
+        """Write the pending events of this iteration into the record: one scatter per field,
+        at rows `pend_at` (out-of-range rows, for the empty slots, are dropped). The loop's
+        condition is unbatched (`run`), so the record is updated in place: each iteration
+        touches the few rows it writes, not the whole max_epochs-long record."""
         E = self.max_epochs
-        for slot in range(PEND_SLOTS):
-            i = jnp.where(slot < st.pend_count, st.pend_at[slot], E + 1)
-            row, row_m = jnp.arange(E) == i, jnp.arange(E + 1) == i + 1
+        rows = jnp.where(jnp.arange(PEND_SLOTS) < st.pend_count, st.pend_at, E + 1)
 
-            def put(arr, value, mask=row):
-                return _put_rows(arr, mask, value)
+        def put(arr, value, off=0):
+            return arr.at[rows + off].set(jnp.asarray(value, arr.dtype), mode="drop")
 
-            rec = eqx.tree_at(
-                lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
-                           r.epoch_modes, r.simultaneous, r.grazing, r.inside_guard),
-                rec,
-                (
-                    put(rec.event_times, st.pend_time[slot]),
-                    put(rec.transitions, st.pend_transition[slot]),
-                    put(rec.states_before, st.pend_before[slot]),
-                    put(rec.states_after, st.pend_after[slot]),
-                    put(rec.epoch_modes, st.pend_target[slot], row_m),
-                    put(rec.simultaneous, st.pend_simultaneous[slot]),
-                    put(rec.grazing, st.pend_grazing[slot]),
-                    put(rec.inside_guard, st.pend_inside[slot]),
-                ),
-            )
-        return rec
+        return eqx.tree_at(
+            lambda r: (r.event_times, r.transitions, r.states_before, r.states_after,
+                       r.epoch_modes, r.simultaneous, r.grazing, r.inside_guard),
+            rec,
+            (
+                put(rec.event_times, st.pend_time),
+                put(rec.transitions, st.pend_transition),
+                put(rec.states_before, st.pend_before),
+                put(rec.states_after, st.pend_after),
+                put(rec.epoch_modes, st.pend_target, 1),  # epoch i + 1 starts after event i
+                put(rec.simultaneous, st.pend_simultaneous),
+                put(rec.grazing, st.pend_grazing),
+                put(rec.inside_guard, st.pend_inside),
+            ),
+        )
 
     def _begin_epoch(self, st: LoopState, t, y, mode, zero_run) -> LoopState:
         """Move to the start of a new epoch at (t, y) in `mode` (its start test comes next)."""
@@ -501,7 +501,9 @@ class Loop:
         else:
             unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
             samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,)) for th in thetas]
-        ys_e = jnp.stack([y for y, _ in samples]).at[0].set(sg(y0)).at[-1].set(sg(y1))
+        # The first and last samples are the step's own ends (exact, not re-interpolated); set
+        # in the list, before stacking, so that the stack is the one array of samples.
+        ys_e = jnp.stack([sg(y0)] + [y for y, _ in samples[1:-1]] + [sg(y1)])
         yd_e = jnp.stack([yd for _, yd in samples]) / h_safe
         G_e, D_e = jax.vmap(lambda x, y, yd: jax.jvp(
             lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
@@ -717,8 +719,13 @@ class Loop:
         # never waits; under vmap at most MAX_WAIT iterations before each event or epoch start
         # (a held step whose dip stays positive waits too, and is not counted here).
         bound = self.max_steps + (self.max_epochs + 2) * (MAX_WAIT + 2)
+        # The condition is one decision for the whole batch under `jax.vmap` (`unvmap_any`):
+        # with a per-execution condition, vmap's while loop would select every carried array
+        # (the record included) between its old and new value at every iteration, a pass over
+        # all of it that also keeps the record from being updated in place. Every stage leaves
+        # a finished execution as it is, so running the body for it changes nothing.
         st, rec = eqxi.while_loop(
-            lambda c: ~c[0].done,
+            lambda c: eqxi.unvmap_any(~c[0].done),
             self.body,
             carry,
             max_steps=bound,
