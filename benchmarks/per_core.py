@@ -18,7 +18,11 @@ Tsit5, rtol = atol = 1e-9, float64, the ball of problem A (h0 ~ U(0.5, 1.5), v0 
 e = 0.8, T = 2.5), N executions; each rate is the best of `--rounds` runs, errors against the
 closed form (numpy, `examples.bouncing_ball_closed_form`) for every execution.
 
-    python benchmarks/per_core.py [--n 10000] [--rounds 7]   # table; results/per_core.json
+Problems B (Van der Pol relay) and C (thermostat) follow on one core: the lock-step loop,
+hybridjax's batched engine and `jax.vmap(hj.simulate)`, `--n-other` executions each, errors
+against `work_precision.reference` (C's closed form; for B a Dopri8 run at 1e-13).
+
+    python benchmarks/per_core.py [--n 10000] [--n-other 2000] [--rounds 7]   # results/per_core.json
 """
 
 import argparse
@@ -34,6 +38,7 @@ from _common import machine_info, write_json
 from work_precision import (  # also: one device per core, x64
     ball_closed_form_jax,
     errors,
+    reference,
     runner,
     with_constants,
 )
@@ -88,16 +93,22 @@ def ways(prob):
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--n", type=int, default=10_000, help="executions")
-    ap.add_argument("--rounds", type=int, default=7, help="timed rounds, alternating the ways")
-    opts = ap.parse_args()
-    prob = P.ball()
-    x0, m0 = prob.sample(np.random.default_rng(5), opts.n)
-    truths = [prob.truth(x, m) for x, m in zip(x0, m0, strict=True)]
-    xa, ma = jnp.asarray(x0), jnp.asarray(m0)
-    fns = ways(prob)
+def one_core_ways(prob):
+    """Problems B and C on one core: {name: (fn of (x0, mode0), reads (num_events, final_state))}."""
+    lock = diffrax_lockstep(prob.system, solver=diffrax.Tsit5(), t1=prob.t1, max_epochs=prob.max_epochs,
+                            max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+    batched, vmapped = runner(prob, "Tsit5", devices=1), runner(prob, "Tsit5", engine="vmap")
+    return {
+        "diffrax lock-step loop": (with_constants(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2])),
+        "hybridjax": (lambda x, m: batched(x, m, 1e-9, 1e-12), lambda r: (r.num_events, r.final_state)),
+        "hybridjax vmap(simulate)": (with_constants(lambda x, m: vmapped(x, m, 1e-9, 1e-12)),
+                                     lambda r: (r.num_events, r.final_state)),
+    }
+
+
+def timed(fns, truths, prob, xa, ma, rounds):
+    """{name: row}: each way's first call (compile and run), error, wrong event counts and the
+    times of `rounds` alternating runs."""
     rows = {}
     for name, (fn, read) in fns.items():
         t = time.perf_counter()
@@ -105,18 +116,49 @@ def main():
         ne, fs = read(res)
         err, wrong = errors(prob, truths, fs, ne)
         rows[name] = dict(first_call_s=time.perf_counter() - t, error=err, wrong=wrong, runs_s=[])
-    for _ in range(opts.rounds):  # alternating, so that the machine's drift touches every way alike
+    for _ in range(rounds):  # alternating, so that the machine's drift touches every way alike
         for name, (fn, _) in fns.items():
             t = time.perf_counter()
             jax.block_until_ready(fn(xa, ma))
             rows[name]["runs_s"].append(time.perf_counter() - t)
+    n = xa.shape[0]
+    for r in rows.values():
+        r["exec_per_s"] = n / min(r["runs_s"])
+    return rows
+
+
+def others(n, rounds):
+    """Problems B and C on one core (`one_core_ways`)."""
+    out = {}
+    for prob in (P.vdp_relay(), P.thermostat()):
+        x0, m0 = prob.sample(np.random.default_rng(5), n)
+        rows = timed(one_core_ways(prob), reference(prob, x0, m0), prob, jnp.asarray(x0), jnp.asarray(m0), rounds)
+        lock = rows["diffrax lock-step loop"]["exec_per_s"]
+        for name, r in rows.items():
+            r["vs_lockstep"] = r["exec_per_s"] / lock
+            print(f"{prob.name}, {name:<26} {r['exec_per_s']:11.0f}/s {r['vs_lockstep']:6.2f}x the lock-step loop"
+                  f"  error {r['error']:8.1e} wrong {r['wrong']}")
+        out[prob.name] = dict(n=n, rows=rows)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, default=10_000, help="executions")
+    ap.add_argument("--n-other", type=int, default=2_000, help="executions of problems B and C")
+    ap.add_argument("--rounds", type=int, default=7, help="timed rounds, alternating the ways")
+    opts = ap.parse_args()
+    prob = P.ball()
+    x0, m0 = prob.sample(np.random.default_rng(5), opts.n)
+    truths = [prob.truth(x, m) for x, m in zip(x0, m0, strict=True)]
+    xa, ma = jnp.asarray(x0), jnp.asarray(m0)
+    rows = timed(ways(prob), truths, prob, xa, ma, opts.rounds)
     lock1 = opts.n / min(rows["diffrax lock-step loop, one core"]["runs_s"])
     closed1 = opts.n / min(rows["closed form, one core"]["runs_s"])
     print(f"problem A, N = {opts.n}, {len(jax.devices())} device(s), Tsit5, 1e-9, float64; best of {opts.rounds}")
     print(f"{'way':<34} {'exec/s':>11} {'x lock-step (1 core)':>21} {'x closed form (1 core)':>23}"
           f" {'error':>8} {'wrong':>5}")
     for name, r in rows.items():
-        r["exec_per_s"] = opts.n / min(r["runs_s"])
         r["vs_lockstep_one_core"] = r["exec_per_s"] / lock1
         r["vs_closed_form_one_core"] = r["exec_per_s"] / closed1
         print(f"{name:<34} {r['exec_per_s']:11.0f} {r['vs_lockstep_one_core']:21.2f}"
@@ -128,7 +170,9 @@ def main():
               f"{h['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form, {h['exec_per_s'] / b['exec_per_s']:.2f}x "
               f"the bare loop; the bare loop {b['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
               f"{b['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form (each on {cores})")
-    path = write_json("per_core", dict(machine=machine_info(), n=opts.n, rounds=opts.rounds, rows=rows))
+    other = others(opts.n_other, opts.rounds)
+    path = write_json("per_core", dict(machine=machine_info(), n=opts.n, rounds=opts.rounds, rows=rows,
+                                       others=other))
     print(f"wrote {path}")
 
 

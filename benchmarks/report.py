@@ -245,6 +245,15 @@ def per_core(res: dict) -> list[str]:
                    f"{b['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop.")
     out += ["", "The split figures include the host-side split and transfers. A function as cheap as the closed "
             "form can run slower split than on one core: its work is smaller than the split's cost."]
+    if res.get("others"):
+        out += ["", "## Problems B and C, one core", "",
+                "Van der Pol relay (B) and thermostat (C), Tsit5, rtol = atol = 1e-9, on one core, in the same "
+                f"process, best of {res['rounds']} alternating runs; errors against the closed form (C) or a Dopri8 "
+                "run at rtol = atol = 1e-13 (B).", ""]
+        body = [[name, f"{o['n']:,}", way, _rate(r["exec_per_s"]), f"{r['vs_lockstep']:.2f}", f"{r['error']:.0e}",
+                 r["wrong"]] for name, o in res["others"].items() for way, r in o["rows"].items()]
+        out += _table(["problem", "N", "way", "executions/s", "x the lock-step loop", "max error",
+                       "wrong event counts"], body)
     return out
 
 
