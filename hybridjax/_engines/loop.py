@@ -526,13 +526,14 @@ class Loop:
 
         def put_few(ys):
             # Every execution's save rows in this step lie in i0 .. i0 + SAVE_WINDOW - 1:
-            # evaluate the interpolant there (not at all S rows), then place row s from
-            # window slot s - i0 with one gather.
-            idx = jnp.minimum(i0 + jnp.arange(SAVE_WINDOW), S - 1)
-            tt = jnp.clip(self.save_ts[idx], sg(t), sg(t_next))
-            vals = jax.vmap(interp.evaluate)(tt)
-            slot = jnp.clip(jnp.arange(S) - i0, 0, SAVE_WINDOW - 1)
-            return _put_rows(ys, mask, vals[slot])
+            # evaluate the interpolant there (not at all S rows) and scatter those rows (the
+            # others, and rows past S, to the dropped row S): the record is written in place
+            # (`run`), a few rows per execution rather than a pass over all S.
+            idx = i0 + jnp.arange(SAVE_WINDOW)
+            idx_c = jnp.minimum(idx, S - 1)
+            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts[idx_c], sg(t), sg(t_next)))
+            rows = jnp.where((idx < S) & mask[idx_c], idx, S)
+            return ys.at[rows].set(vals, mode="drop")
 
         def put(ys):
             few = eqxi.unvmap_max(span) <= SAVE_WINDOW
