@@ -69,11 +69,21 @@ def joined(read):
     return out
 
 
+def lockstep(prob):
+    """The lock-step loop for `prob` (Tsit5, 1e-9), as `fn(x0, mode0, args)`."""
+    return diffrax_lockstep(prob.system, solver=diffrax.Tsit5(), t1=prob.t1, max_epochs=prob.max_epochs,
+                            max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+
+
+def read_solution(r):
+    """(num_events, final_state) of a hybridjax `Solution`."""
+    return r.num_events, r.final_state
+
+
 def ways(prob):
     """{name: (fn of (x0, mode0), reads (num_events, final_state) off its output)}."""
     t1 = prob.t1
-    lock = diffrax_lockstep(prob.system, solver=diffrax.Tsit5(), t1=t1, max_epochs=prob.max_epochs,
-                            max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+    lock = lockstep(prob)
     bare = ball_bare_loop()
     closed = ball_closed_form_jax(prob.max_epochs)
     out = {}
@@ -85,24 +95,21 @@ def ways(prob):
         out[f"bare hand-written loop, {cores}"] = (wrap(lambda x, m: bare(x, G, E, t1)), rd(lambda r: r))
         out[f"closed form, {cores}"] = (wrap(lambda x, m: closed(x, G, E, t1)), rd(lambda r: r))
         fn = runner(prob, "Tsit5", devices=1 if cores == "one core" else None)
-        out[f"hybridjax, {cores}"] = (lambda x, m, fn=fn: fn(x, m, 1e-9, 1e-12),
-                                      lambda r: (r.num_events, r.final_state))
+        out[f"hybridjax, {cores}"] = (lambda x, m, fn=fn: fn(x, m, 1e-9, 1e-12), read_solution)
         if cores == "one core":  # the path simulate_batch takes on a GPU
             fn = with_constants(lambda x, m, fn=runner(prob, "Tsit5", engine="vmap"): fn(x, m, 1e-9, 1e-12))
-            out["hybridjax vmap(simulate), one core"] = (fn, lambda r: (r.num_events, r.final_state))
+            out["hybridjax vmap(simulate), one core"] = (fn, read_solution)
     return out
 
 
 def one_core_ways(prob):
     """Problems B and C on one core: {name: (fn of (x0, mode0), reads (num_events, final_state))}."""
-    lock = diffrax_lockstep(prob.system, solver=diffrax.Tsit5(), t1=prob.t1, max_epochs=prob.max_epochs,
-                            max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
+    lock = lockstep(prob)
     batched, vmapped = runner(prob, "Tsit5", devices=1), runner(prob, "Tsit5", engine="vmap")
     return {
         "diffrax lock-step loop": (with_constants(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2])),
-        "hybridjax": (lambda x, m: batched(x, m, 1e-9, 1e-12), lambda r: (r.num_events, r.final_state)),
-        "hybridjax vmap(simulate)": (with_constants(lambda x, m: vmapped(x, m, 1e-9, 1e-12)),
-                                     lambda r: (r.num_events, r.final_state)),
+        "hybridjax": (lambda x, m: batched(x, m, 1e-9, 1e-12), read_solution),
+        "hybridjax vmap(simulate)": (with_constants(lambda x, m: vmapped(x, m, 1e-9, 1e-12)), read_solution),
     }
 
 
