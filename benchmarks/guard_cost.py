@@ -1,12 +1,15 @@
-"""What watching guards costs the batched engine per step, against a bare hand-written loop.
+"""What watching guards costs per step, on the batched engine and under `jax.vmap(simulate)`,
+against a bare hand-written loop.
 
 A harmonic oscillator x'' = -4 x (N = 10,000 executions, x0 ~ U(0.5, 1.5), v0 ~ U(-1, 1),
 to T = 2.5, Tsit5, rtol = atol = 1e-9, float64: ~70 steps each, the same steps in every
-row) on `jax.jit(hj.simulate_batch)` with no transition, with one transition whose guard
-never fires (x + 1000: sampled at every step, never located), and that guard with fewer
-interior samples; then the bouncing ball of problem A on the engine and on the bare loop of
-`_baselines.ball_bare_loop`. Time per step = run time / the largest step count (every lane
-steps in every iteration until the slowest is done). Same process, best of 7, alternating.
+row) with no transition, with one transition whose guard never fires (x + 1000: sampled at
+every step, never located), and that guard with fewer interior samples; then the bouncing
+ball of problem A; each on `jax.jit(hj.simulate_batch)` (the batched engine) and on
+`jax.jit(jax.vmap(hj.simulate))` (the per-execution loop, the path a GPU runs); and the ball on
+the bare loop of `_baselines.ball_bare_loop`. Time per step = run time / the largest step
+count (every lane steps in every iteration until the slowest is done). Same process, best of
+7, alternating.
 
 Twice, each in a fresh process (JAX reads `XLA_FLAGS` once; the script re-runs itself with
 `--one`): with XLA's defaults, and with `--xla_cpu_experimental_ynn_fusion_type=` (XLA:CPU in
@@ -57,14 +60,21 @@ def one() -> list[dict]:
         return jax.jit(lambda x, m: hj.simulate_batch(system, x, m, 0.0, t1, args, stepsize_controller=CTRL,
                                                       max_epochs=32, max_steps=20_000, **kw))
 
+    def vmapped(system, t1, args, **kw):
+        return jax.jit(jax.vmap(lambda x, m: hj.simulate(system, x, m, 0.0, t1, args, stepsize_controller=CTRL,
+                                                         max_epochs=32, max_steps=20_000, **kw)))
+
     bare = ball_bare_loop()
-    cases = {
-        "oscillator, no transition": engine(oscillator(False), T, None),
-        "oscillator, 1 guard never firing, interior_points=4 (default)": engine(oscillator(True), T, None),
-        "oscillator, 1 guard never firing, interior_points=0": engine(oscillator(True), T, None, interior_points=0),
-        "ball (problem A), hybridjax": engine(ball.system, ball.t1, ball.args),
-        "ball (problem A), bare loop": lambda x, m: bare(x, 9.8, 0.8, ball.t1),
-    }
+    cases = {}
+    for way, make in (("batched engine", engine), ("jax.vmap(simulate)", vmapped)):
+        cases |= {
+            f"oscillator, no transition; {way}": make(oscillator(False), T, None),
+            f"oscillator, 1 guard never firing, interior_points=4 (default); {way}": make(oscillator(True), T, None),
+            f"oscillator, 1 guard never firing, interior_points=0; {way}": make(oscillator(True), T, None,
+                                                                               interior_points=0),
+            f"ball (problem A); {way}": make(ball.system, ball.t1, ball.args),
+        }
+    cases["ball (problem A); bare loop"] = lambda x, m: bare(x, 9.8, 0.8, ball.t1)
     outs = {k: jax.block_until_ready(f(x0, m0)) for k, f in cases.items()}
     best = dict.fromkeys(cases, np.inf)
     for _ in range(7):
@@ -82,12 +92,12 @@ def one() -> list[dict]:
 
 def main():
     settings = {name: dict(flags=SETTINGS[name], rows=r) for name, r in run_per_setting(__file__, SETTINGS).items()}
-    print(f"{'case':66s} {'setting':20s} {'run ms':>8s} {'max steps':>9s} {'us/step':>8s}")
+    print(f"{'case':88s} {'setting':20s} {'run ms':>8s} {'max steps':>9s} {'us/step':>8s}")
     for name, s in settings.items():
         for row in s["rows"]:
             steps = row["max_steps"]
             per = f"{row['per_step_s'] * 1e6:8.0f}" if steps else f"{'':8s}"
-            print(f"{row['case']:66s} {name:20s} {row['run_s'] * 1e3:8.1f} {steps if steps else '':>9} {per}")
+            print(f"{row['case']:88s} {name:20s} {row['run_s'] * 1e3:8.1f} {steps if steps else '':>9} {per}")
     path = write_json("guard_cost", dict(machine=machine_info(), n=N, rows=settings["default"]["rows"],
                                          settings=settings))
     print(f"wrote {path}")

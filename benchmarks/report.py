@@ -293,10 +293,12 @@ def guard_cost(res: dict) -> list[str]:
     out = _page("guard_cost", "Cost of watching guards", res, "guard_cost.py",
                 f"N = {res['n']:,} executions, Tsit5, rtol = atol = 1e-9. A harmonic oscillator with no "
                 "transition, with one guard that never fires (sampled at every step, never located), and that "
-                "guard with `interior_points=0`; then the bouncing ball (problem A) on hybridjax and on the bare "
-                "hand-written loop. Time per step = run time / the largest step count. Each setting in a fresh "
-                "process; the last column with `XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`, which stops "
-                "XLA:CPU from handing reductions to YNNPACK calls that do not fuse with their inputs.")
+                "guard with `interior_points=0`; then the bouncing ball (problem A). Each on the batched engine "
+                "(`jax.jit(hj.simulate_batch)`) and under `jax.jit(jax.vmap(hj.simulate))` (the per-execution "
+                "loop, the path a GPU runs); the ball also on the bare hand-written loop. Time per step = run time "
+                "/ the largest step count. Each setting in a fresh process; the last column with "
+                "`XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=`, which stops XLA:CPU from handing reductions "
+                "to YNNPACK calls that do not fuse with their inputs.")
     other = [k for k in res["settings"] if k != "default"]
     alt = {r["case"]: r for r in res["settings"][other[0]]["rows"]} if other else {}
     body = []
@@ -306,9 +308,22 @@ def guard_cost(res: dict) -> list[str]:
         body.append([r["case"], f"{r['run_s'] * 1e3:.1f}", r.get("max_steps") or "", per,
                      f"{a['run_s'] * 1e3:.1f}" if a else ""])
     out += _table(["case", "run ms", "steps", "us per step", f"run ms, {other[0]}" if other else ""], body)
-    out += ["A guard that is watched costs about as much as the step itself: its samples at the step's ends and "
-            "interior points (each a dense-output value, slope and guard JVP) and the crossing and dip tests. "
-            "A flow or guard that reduces over components (`jnp.sum(x)`, `x @ w`) can be faster written out "
+    step = {r["case"]: r.get("per_step_s") for r in res["settings"]["default"]["rows"]}
+    shares = []
+    for way in ("batched engine", "jax.vmap(simulate)"):
+        bare = step.get(f"oscillator, no transition; {way}")
+        full = step.get(f"oscillator, 1 guard never firing, interior_points=4 (default); {way}")
+        few = step.get(f"oscillator, 1 guard never firing, interior_points=0; {way}")
+        if bare and full and few:
+            where = "on the batched engine" if way == "batched engine" else f"under `{way}`"
+            shares.append(f"{where}, one watched guard adds {(full - bare) / bare:.0%} to the cost of a step "
+                          f"({(few - bare) / bare:.0%} with `interior_points=0`)")
+    if shares:
+        out += ["Measured on this page: " + "; ".join(shares) + ". The guard's samples at the step's ends and "
+                "interior points (each a dense-output value, slope and guard JVP), the crossing and dip tests, and "
+                "the bookkeeping of a step held for the event phase are paid at every step of every execution, "
+                "whether or not an event comes.", ""]
+    out += ["A flow or guard that reduces over components (`jnp.sum(x)`, `x @ w`) can be faster written out "
             "(`x[0] + x[1]`) or with the flag above."]
     return out
 
