@@ -245,6 +245,25 @@ def test_dip_candidates_and_filter():
     assert bool(R.dip_filter(f, jnp.array(0), t, jnp.array(3)))  # no crossing
 
 
+def test_needs_location_is_any_crossing_or_dip_candidate():
+    # Whether a step is held (`needs_location`) against where (`first_crossings`,
+    # `dip_candidates`): random samples of 3 watched functions at 6 sample times, with values
+    # near zero so that crossings, dips and neither all occur.
+    rng = np.random.default_rng(3)
+    s = jnp.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
+    seen = set()
+    for _ in range(200):
+        V = jnp.asarray(rng.uniform(-0.2, 1.0, (6, 3)))
+        D = jnp.asarray(rng.normal(0.0, 2.0, (6, 3)))
+        g_start = jnp.asarray(rng.uniform(0.0, 1.0, 3))
+        has, _ = R.first_crossings(g_start, V[1:])
+        suspect, _, _ = R.dip_candidates(jnp.concatenate([g_start[None], V[1:]]), D, s)
+        need = bool(R.needs_location(g_start, V, D, s))
+        assert need == bool(jnp.any(has) | jnp.any(suspect))
+        seen.add((bool(jnp.any(has)), bool(jnp.any(suspect))))
+    assert seen == {(False, False), (False, True), (True, False), (True, True)}
+
+
 # ---------------------------------------------------------------------------- location
 def test_locate_root_brackets_the_root_from_the_right():
     r = float(R.locate_root(lambda x: 2.0 - x * x, jnp.asarray(1.0), jnp.asarray(2.0), 1e-12))

@@ -4,16 +4,22 @@ with the rare work of an execution (its events and epoch starts) in a separate p
 Each iteration does, in order:
 
 1. `event_phase`, where it is due (`due`): for every execution waiting for it, `resolve_stage`
-   locates the first event on its held step's dense output and jumps (record the event, apply
-   the reset), or accepts the step; then `start_stage`, at the start of an epoch, decides
-   whether a guard fires at once (a zero-length epoch, `_rules.start.epoch_start`) and if not
-   chooses the epoch's first step. A guard that fires at once is applied by the next event
-   phase's `resolve_stage`, through the same jump (the execution waits at the epoch's start
-   meanwhile), so that the program holds one copy of the jump.
+   locates the first event on its held step's dense output (where the step's samples cross or
+   dip, `detection`) and jumps (record the event, apply the reset), or accepts the step; then
+   `start_stage`, at the start of an epoch, decides whether a guard fires at once (a
+   zero-length epoch, `_rules.start.epoch_start`) and if not chooses the epoch's first step.
+   A guard that fires at once is applied by the next event phase's `resolve_stage`, through
+   the same jump (the execution waits at the epoch's start meanwhile), so that the program
+   holds one copy of the jump.
 2. `step_stage`, the hot path: one step of the solver with its step-size controller for every
-   execution not waiting; the watched values at the step's samples and the crossing and dip
-   tests (`detect`). A step without a candidate is accepted (and its save times written); a
-   step with one is held, and the execution waits for the event phase.
+   execution not waiting; the watched values at the step's samples and whether they cross or
+   may dip (`needs_location`). A step without a candidate is accepted (and its save times
+   written); a step with one is held, and the execution waits for the event phase, which works
+   out where from the step it keeps. Only the yes-or-no is computed at every step: the first
+   crossing's and dip's indices and the tangents' intersection would be computed for every
+   execution at every step, and under `jax.vmap` XLA:CPU then keeps the samples as
+   (executions, samples, n) arrays read by many fusions, slower than the yes-or-no alone
+   (`benchmarks/guard_cost.py`).
 3. `flush`: the events of the phase written into the max_epochs-long `EventRecord`.
 
 Alone, an execution enters the event phase at the iteration after it needs it, so its
@@ -54,7 +60,7 @@ from jax import lax
 
 from .._core.status import Status
 from .._definition.kernels import Kernels, mask_inputs
-from .._rules.detect import dip_candidates, dip_filter, first_crossings
+from .._rules.detect import dip_candidates, dip_filter, first_crossings, needs_location
 from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
 from .._rules.locate import event_brackets, event_point, first_event
 from .._rules.options import SolveOptions
@@ -125,7 +131,6 @@ class LoopState(eqx.Module):
     p_solver_state: Any
     p_made_jump: jax.Array
     p_g_end: jax.Array  # (K + W,) the watched values at the step's end
-    p_det: Detection
     # A transition that fires at the start of an epoch (`start_stage`), waiting for the next
     # event phase, whose one jump (`resolve_stage`) applies it: the program has one copy of the
     # jump (reset, record, Zeno test) for the events of held steps and of epoch starts.
@@ -284,8 +289,6 @@ class Loop:
             p_solver_state=solver_state,
             p_made_jump=jnp.array(False),
             p_g_end=jnp.zeros((W,), dtype),
-            p_det=Detection(jnp.zeros((W,), bool), jnp.zeros((W,), jnp.int32), jnp.zeros((W,), bool),
-                            jnp.zeros((W,), jnp.int32), jnp.zeros((W,), dtype)),
             f_fire=jnp.array(False),
             f_k=jnp.array(0, jnp.int32),
             f_simultaneous=jnp.array(False),
@@ -579,14 +582,9 @@ class Loop:
         h_new = sg(h_new).astype(self.dtype)
         ctrl_state = _select(finite, ctrl_state, st.controller_state)
         ok = keep & active
-        has, j = first_crossings(st.g_prev, G)
-        # A guard can dip below zero and come back between two samples (near-grazing): where
-        # the end tangents allow it, the minimum is searched for on the interpolant.
-        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e, s_ext)
-        has = has & ok
-        det = Detection(has, j.astype(jnp.int32), dip_filter(has, j, suspect & ok, i_d),
-                        i_d.astype(jnp.int32), x0_d)
-        held = ok & (jnp.any(det.has) | jnp.any(det.suspect))
+        # A step with a crossing or a dip candidate is held for the event phase, which works
+        # out where (`detection`) from the step it keeps.
+        held = ok & needs_location(st.g_prev, G_e, D_e, s_ext)
 
         counted = eqx.tree_at(
             lambda s: (s.h, s.controller_state, s.num_steps, s.num_rejected),
@@ -596,10 +594,10 @@ class Loop:
         accepted = self._accept(counted, t_next, y1, solver_state, made_jump, G[-1])
         pending = eqx.tree_at(
             lambda s: (s.pending, s.waited, s.p_t0, s.p_t1, s.p_y1, s.p_dense, s.p_solver_state,
-                       s.p_made_jump, s.p_g_end, s.p_det),
+                       s.p_made_jump, s.p_g_end),
             counted,
             (jnp.array(True), jnp.array(0, jnp.int32), t, t_next, y1, dense_info, solver_state,
-             made_jump, G[-1], det),
+             made_jump, G[-1]),
         )
         progressed = _select(keep, _select(held, pending, accepted), counted)
         # A non-finite step that cannot be shrunk any further stops the run at the step's
@@ -617,6 +615,25 @@ class Loop:
         re-expansion of the polynomial, in the Chebyshev basis or by stage weights, adds to
         that error)."""
         return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+
+    def detection(self, kern, mode, st: LoopState, args_sg, active) -> Detection:
+        """The held step's crossings and dip candidates (`first_crossings`, `dip_candidates`,
+        `dip_filter`), from its samples taken again as `step_stage` took them (the same function
+        of the same values: the execution waits at the step's start). Zeros where not `active`."""
+        _, G_e, D_e = self._samples(kern, mode, sg(st.p_t0), sg(st.p_t1), sg(st.y), sg(st.p_y1),
+                                    sg(st.p_dense), args_sg)
+        # The step's end values as the step stage kept them (and accepted steps carry on from):
+        # a crossing into the guard at the step's end is found here whenever it was there.
+        G = jnp.concatenate([G_e[1:-1], st.p_g_end[None]])
+        has, j = first_crossings(st.g_prev, G)
+        # A guard can dip below zero and come back between two samples (near-grazing): where
+        # the end tangents allow it, the minimum is searched for on the interpolant.
+        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e,
+                                            self._sample_times(st.p_t0, st.p_t1))
+        has = has & active
+        det = Detection(has, j.astype(jnp.int32), dip_filter(has, j, suspect & active, i_d),
+                        i_d.astype(jnp.int32), x0_d)
+        return jtu.tree_map(lambda a: jnp.where(active, a, jnp.zeros_like(a)), det)
 
     def resolve_stage(self, st: LoopState, saved):
         """The held steps: locate the first event on each step's dense output (`event_brackets`,
@@ -642,7 +659,7 @@ class Loop:
         def values_at(x):
             return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
 
-        det = jtu.tree_map(lambda a: jnp.where(active, a, jnp.zeros_like(a)), st.p_det)
+        det = self.detection(kern, mode, st, args_sg, active)
         br = event_brackets(values_at, det, s_ext, tol, self.locator)
         t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)

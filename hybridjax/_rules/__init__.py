@@ -14,8 +14,8 @@ functions and tests):
 - the start of an epoch: `epoch_start` (`start_decision`: the trending-negative band and Lie
   derivatives; `first_step`, `departure_step_bound`);
 - a step: `nonfinite_step`, `step_collapsed`, `step_stops`;
-- detection on a step's dense output: `crossing`, `dip_interval`, `first_crossings`,
-  `dip_candidates`, `dip_filter`;
+- detection on a step's dense output: `crossing`, `dip_interval`, `needs_location`,
+  `first_crossings`, `dip_candidates`, `dip_filter`;
 - location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`; the guards
   reached at one instant, `simultaneous_set`, and the simultaneity rule,
   `resolve_simultaneous`), `event_point` (the implicit-function event time);
@@ -49,6 +49,7 @@ from .detect import dip_candidates as dip_candidates
 from .detect import dip_filter as dip_filter
 from .detect import dip_interval as dip_interval
 from .detect import first_crossings as first_crossings
+from .detect import needs_location as needs_location
 from .jump import blocks as blocks
 from .jump import jump_outcome as jump_outcome
 from .jump import push_recent as push_recent

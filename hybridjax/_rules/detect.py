@@ -57,6 +57,17 @@ def dip_candidates(V, D, s_ext):
     return jnp.any(cand, axis=0), i, x0
 
 
+def needs_location(g_start, V, D, s_ext):
+    """Whether a step needs its event located: some watched function crosses between two of
+    its samples, or is a dip candidate on some sample interval (`crossing`, `dip_interval`).
+    `first_crossings` and `dip_candidates` say where; this says only whether, which is all a
+    step without one needs (`V`, `D` as `dip_candidates`'s, with `V[0]` replaced by
+    `g_start`, the values carried from the step before)."""
+    V = jnp.concatenate([g_start[None], V[1:]])
+    cross, cand, _ = dip_interval(V[:-1], V[1:], D[:-1], D[1:], jnp.diff(s_ext)[:, None])
+    return jnp.any(cross | cand)
+
+
 def dip_filter(has, j, suspect, i_d):
     """Which dip candidates to search: those before the guard's first crossing in the step (or
     of guards without one), suspect & (~has | i_d < j); a dip after a crossing is never the
