@@ -620,16 +620,15 @@ class Loop:
         """The held step's crossings and dip candidates (`first_crossings`, `dip_candidates`,
         `dip_filter`), from its samples taken again as `step_stage` took them (the same function
         of the same values: the execution waits at the step's start). Zeros where not `active`."""
-        _, G_e, D_e = self._samples(kern, mode, sg(st.p_t0), sg(st.p_t1), sg(st.y), sg(st.p_y1),
-                                    sg(st.p_dense), args_sg)
+        s_ext, G_e, D_e = self._samples(kern, mode, sg(st.p_t0), sg(st.p_t1), sg(st.y), sg(st.p_y1),
+                                        sg(st.p_dense), args_sg)
         # The step's end values as the step stage kept them (and accepted steps carry on from):
         # a crossing into the guard at the step's end is found here whenever it was there.
         G = jnp.concatenate([G_e[1:-1], st.p_g_end[None]])
         has, j = first_crossings(st.g_prev, G)
         # A guard can dip below zero and come back between two samples (near-grazing): where
         # the end tangents allow it, the minimum is searched for on the interpolant.
-        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e,
-                                            self._sample_times(st.p_t0, st.p_t1))
+        suspect, i_d, x0_d = dip_candidates(jnp.concatenate([st.g_prev[None], G]), D_e, s_ext)
         has = has & active
         det = Detection(has, j.astype(jnp.int32), dip_filter(has, j, suspect & active, i_d),
                         i_d.astype(jnp.int32), x0_d)
