@@ -123,3 +123,35 @@ def test_gradient_wrt_a_guard_parameter_and_of_saved_states():
     np.testing.assert_allclose(dys_dk["c"], (a + r + b - d) * (-p0 / (c - a) ** 2), rtol=1e-9)
     np.testing.assert_allclose(dys_dk["b"], t_star, rtol=1e-9)
     np.testing.assert_allclose(dys_dk["d"], s - t_star, rtol=1e-9)
+
+
+def test_the_loop_starts_with_the_derivatives_its_body_gives():
+    # equinox's checkpointed loop finds which carried values carry a derivative by
+    # differentiating the body until the set stops growing (`_resolve_perturb_val`). The loop
+    # starts from that set (`perturbed_like_the_body`): the search's first round must find it
+    # unchanged, whether x0 or args is differentiated. A field added to the state and missing
+    # from DIFFERENTIABLE_FIELDS shows here as a difference.
+    from equinox.internal._loop import checkpointed
+
+    found = []
+    resolve = checkpointed._resolve_perturb_val
+
+    def recording(final_val, body_fun, perturb_val, perturb_body_fun):
+        out = resolve(final_val, body_fun, perturb_val, perturb_body_fun)
+        found.append((jax.tree_util.tree_leaves(perturb_val), jax.tree_util.tree_leaves(out)))
+        return out
+
+    def height(x0, args):
+        return hj.simulate(BALL, x0, "flight", 0.0, 2.0, args).final_state[0]
+
+    x0, args = jnp.array([1.0, 0.3]), {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+    checkpointed._resolve_perturb_val = recording
+    try:
+        jax.make_jaxpr(jax.grad(height, argnums=0))(x0, args)
+        jax.make_jaxpr(jax.grad(height, argnums=1))(x0, args)
+    finally:
+        checkpointed._resolve_perturb_val = resolve
+    assert len(found) == 2
+    for start, fixed in found:
+        assert sum(fixed) > 2  # the record and the held step carry derivatives
+        assert start == fixed

@@ -179,6 +179,56 @@ def _stop(st: LoopState, *rules) -> LoopState:
     return eqx.tree_at(lambda s: (s.done, s.status._value), st, (done, code))
 
 
+# The carried fields that the loop's body computes from the state, and so from the inputs
+# (t0, x0, args, t1), whichever of them is differentiated; the others (step size, controller
+# state, the watched values, which the loop keeps without gradients, and the integer and
+# boolean fields) never carry a derivative. `perturbed_like_the_body`.
+DIFFERENTIABLE_FIELDS = (
+    "t", "y", "solver_state", "pend_time", "pend_before", "pend_after", "zeno_time", "zeno_state",
+    "recent_times", "recent_states", "p_t0", "p_t1", "p_y1", "p_dense", "p_solver_state",
+    "event_times", "states_before", "states_after", "ys",
+)
+
+
+@jax.custom_jvp
+def _zero_from(xs):
+    """0.0, with a (zero) derivative wherever one of `xs` has one."""
+    return jnp.zeros((), jnp.result_type(*xs))
+
+
+@_zero_from.defjvp
+def _zero_from_jvp(primals, tangents):
+    (xs,), (txs,) = primals, tangents
+    zero = jnp.zeros((), jnp.result_type(*xs))
+    return zero, zero * sum(jnp.sum(t) for t in txs)  # linear in the tangents: transposable
+
+
+def perturbed_like_the_body(carry, inputs, fields=DIFFERENTIABLE_FIELDS):
+    """`carry` with each of its `fields` (float leaves) minus a zero that carries a derivative
+    wherever one of `inputs` does: the same values bit for bit (x - 0 is x, -0 and inf
+    included), differentiated as the body will differentiate them.
+
+    Under differentiation, equinox's while loops (and JAX's) find which carried values carry
+    a derivative by differentiating the body, growing the set from the initial values' until
+    it stops growing: one trace of the body's derivative per round. The record and the
+    held-step fields start as constants and are reached a round or two later; started where
+    the body takes them, the first round confirms the set. The derivatives are unchanged (the
+    added tangents are zero); only tracing is saved."""
+    leaves = [x for x in jtu.tree_leaves(inputs) if eqx.is_inexact_array(x)]
+    if not leaves:
+        return carry
+    z = _zero_from(leaves)
+
+    def seeded(obj):
+        names = [n for n in fields if hasattr(obj, n)]
+        return eqx.tree_at(
+            lambda o: [getattr(o, n) for n in names], obj,
+            [jtu.tree_map(lambda a: a - z.astype(a.dtype) if eqx.is_inexact_array(a) else a, getattr(obj, n))
+             for n in names])
+
+    return tuple(seeded(c) for c in carry)
+
+
 class Loop:
     """The loop for one system and one set of options; `run(t0, x0, mode0, args)` runs it."""
 
@@ -732,6 +782,7 @@ class Loop:
 
     def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
         carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
+        carry = perturbed_like_the_body(carry, (t0, y0, self.args, self.t1))
         # Steps, zero-length epochs, and the waits for the event phase: alone, an execution
         # never waits; under vmap at most MAX_WAIT iterations before each event or epoch start
         # (a held step whose dip stays positive waits too, and is not counted here).
