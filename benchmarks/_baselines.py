@@ -162,15 +162,15 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
     (diffrax's tableau), with diffrax's I controller (safety 0.9, factors 0.2 / 10) and its
     first step (Hairer's rule, once at t0). A crossing (h > 0 at the step's start, <= 0 at its
     end: for a parabola that is every crossing) is located under a `lax.cond` taken only when
-    some lane has one: a bracketed Newton iteration on the step's dense output (Chebyshev
-    series of diffrax's interpolant) until the bracket or the Newton step is below 1e-13 of
-    the step (~7 iterations; Newton approaches a root from one side, so waiting for the
-    bracket alone bisected ~45 times per call: 2x the whole run). The reset
+    some lane has one: a bracketed Newton iteration on the step's dense output (diffrax's
+    interpolant in the engines' Chebyshev form) until the bracket or the Newton step is below
+    1e-13 of the step (~7 iterations; Newton approaches a root from one side, so waiting for
+    the bracket alone bisected ~45 times per call: 2x the whole run). The reset
     v -> -e v is applied there, and the next step is the controller's proposal capped at half
     the next flight's duration (e |v| / g). No record of events, no saves, no status checks.
     Returns `f(x0 (N, 2), g, e, t1) -> (num_events (N,), final_state (N, 2))`.
     """
-    # The dense output's Chebyshev coefficients as the batched engine reads them off diffrax's
+    # The dense output's Chebyshev weights as the engines read them off diffrax's
     # interpolation (not retyped), and its trace-time weighted sum.
     from hybridjax._engines.dense_weights import chebyshev_weights
     from hybridjax._step.runge_kutta import weighted_sum
@@ -187,6 +187,12 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
         for c in coeffs[:0:-1]:
             b1, b2 = 2 * x * b1 - b2 + c, b1
         return x * b1 - b2 + coeffs[0]
+
+    def dense(y0, y1, ks):
+        """The step's dense output of one component at the fraction s (`ChebyshevDense`'s form)."""
+        dy = y1 - y0
+        coeffs = [r[1] * dy + weighted_sum(r[2:], ks, y0) for r in cheb]
+        return lambda s: y0 + s * (dy + (1 - s) * clenshaw(coeffs, 2 * s - 1))
 
     def rms(v):  # over the two components, written out: a reduction over them would not fuse
         return jnp.sqrt(0.5 * (v[0] * v[0] + v[1] * v[1]))
@@ -230,12 +236,11 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
             cross = acc & (y1[0] <= 0) & (y[0] > 0)
 
             def locate(_):
-                coeffs = [r[0] * y[0] + r[1] * y1[0] + weighted_sum(r[2:], [k[0] for k in ks], y[0])
-                          for r in cheb]
+                height = dense(y[0], y1[0], [k[0] for k in ks])
 
                 def newton(c):
                     a, b, x, _, i = c
-                    fx, dfx = jax.jvp(lambda s: clenshaw(coeffs, 2 * s - 1), (x,), (jnp.ones_like(x),))
+                    fx, dfx = jax.jvp(height, (x,), (jnp.ones_like(x),))
                     a, b = jnp.where(fx > 0, x, a), jnp.where(fx <= 0, x, b)
                     step = fx / jnp.where(dfx != 0, dfx, 1.0)
                     xn = jnp.where((x - step >= a) & (x - step <= b), x - step, 0.5 * (a + b))
@@ -252,8 +257,7 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
                 return jnp.where(cross, x, 1.0)
 
             th = lax.cond(jnp.any(cross), locate, lambda _: jnp.ones(N), None)
-            coeffs2 = [r[0] * y[1] + r[1] * y1[1] + weighted_sum(r[2:], [k[1] for k in ks], y[1]) for r in cheb]
-            v_ev = clenshaw(coeffs2, 2 * th - 1)
+            v_ev = dense(y[1], y1[1], [k[1] for k in ks])(th)
             y_reset = jnp.stack([jnp.zeros_like(v_ev), -e * v_ev])
             t_new = jnp.where(cross, t + th * hh, jnp.where(acc, tn, t))
             y_new = jnp.where(cross, y_reset, jnp.where(acc, y1, y))

@@ -87,11 +87,23 @@ def test_batched_engine_agrees_with_per_execution_engine_on_every_example(name):
     # five executions around the example's initial state (different event times and counts)
     scale = 1.0 + 0.07 * np.arange(5)[:, None]
     X = jnp.asarray(np.asarray(x0) * scale + 0.01 * np.arange(5)[:, None])
-    got, want = _both(system, X, mode0, t1, args, saveat=jnp.linspace(0.0, t1, 7))
+    ts = np.linspace(0.0, t1, 7)
+    got, want = _both(system, X, mode0, t1, args, saveat=jnp.asarray(ts))
     assert int(np.max(want.num_events)) >= 1
     _assert_same_executions(got, want)
-    np.testing.assert_allclose(got.ys, want.ys, rtol=1e-8, atol=1e-9)
-    np.testing.assert_array_equal(got.saved_modes, want.saved_modes)
+    # A save time that is also an event time, to rounding (the wall particle's fifth execution
+    # reaches the wall at t = 1 exactly), may fall on either side of the located event: there
+    # each engine saves the state just before or just after it. Elsewhere they agree.
+    near = np.abs(ts[None, :, None] - np.asarray(want.event_times)[:, None, :]) <= 1e-9  # (exec, save, event)
+    tie = np.any(near, axis=-1)
+    np.testing.assert_allclose(np.asarray(got.ys)[~tie], np.asarray(want.ys)[~tie], rtol=1e-8, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(got.saved_modes)[~tie], np.asarray(want.saved_modes)[~tie])
+    for i, j in zip(*np.nonzero(tie), strict=True):
+        events = np.nonzero(near[i, j])[0]
+        allowed = [np.asarray(want.states_before)[i, events], np.asarray(want.states_after)[i, events]]
+        for sol in (got, want):
+            y = np.asarray(sol.ys)[i, j]
+            assert any(np.allclose(y, a[e], rtol=1e-8, atol=1e-9) for a in allowed for e in range(len(events)))
 
 
 def _chatter():
@@ -320,15 +332,18 @@ def test_batched_engine_in_float32_matches_the_closed_form():
                                     diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()],
                          ids=lambda s: type(s).__name__)
 def test_chebyshev_form_of_the_dense_output_equals_diffrax_interpolation(solver):
+    # Random stages, and y1 the interpolant's own end value (as a step's is, to rounding).
     rng = np.random.default_rng(4)
     s = len(type(solver).tableau.c) + 1
-    y0, y1, k = rng.normal(size=3), rng.normal(size=3), rng.normal(size=(s, 3))
+    y0, y1, k = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=(s, 3)))
     t0, t1 = 0.7, 0.95
+    y1 = solver.interpolation_cls(t0=t0, t1=t1, y0=y0, y1=y1, k=k).evaluate(t1)
     A = chebyshev_weights(solver.interpolation_cls, s, jnp.float64)
-    ours = ChebyshevDense.from_stages(A, t0, t1, jnp.asarray(y0), jnp.asarray(y1), jnp.asarray(k))
-    ref = solver.interpolation_cls(t0=t0, t1=t1, y0=jnp.asarray(y0), y1=jnp.asarray(y1), k=jnp.asarray(k))
+    ours = ChebyshevDense.from_stages(A, t0, t1, y0, y1, k)
+    ref = solver.interpolation_cls(t0=t0, t1=t1, y0=y0, y1=y1, k=k)
     for t in np.linspace(t0, t1, 11):
         np.testing.assert_allclose(ours.evaluate(t), ref.evaluate(t), rtol=1e-12, atol=1e-13)
+    assert np.array_equal(ours.evaluate(t0), y0)  # exact at the step's start
 
 
 # a few save times per step, more than SAVE_WINDOW (16) per step, and unsorted

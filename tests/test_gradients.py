@@ -6,6 +6,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hybridjax as hj
 
@@ -125,12 +126,14 @@ def test_gradient_wrt_a_guard_parameter_and_of_saved_states():
     np.testing.assert_allclose(dys_dk["d"], s - t_star, rtol=1e-9)
 
 
-def test_the_loop_starts_with_the_derivatives_its_body_gives():
+@pytest.mark.parametrize("engine", ["per-execution", "batched"])
+def test_the_loop_starts_with_the_derivatives_its_body_gives(engine):
     # equinox's checkpointed loop finds which carried values carry a derivative by
-    # differentiating the body until the set stops growing (`_resolve_perturb_val`). The loop
-    # starts from that set (`perturbed_like_the_body`): the search's first round must find it
-    # unchanged, whether x0 or args is differentiated. A field added to the state and missing
-    # from DIFFERENTIABLE_FIELDS shows here as a difference.
+    # differentiating the body until the set stops growing (`_resolve_perturb_val`). Each
+    # engine's loop starts from that set (`perturbed_like_the_body`): the search's first round
+    # must find it unchanged, whether x0 or args is differentiated. A field added to the state
+    # and missing from the engine's list (`DIFFERENTIABLE_FIELDS`, `LANE_DIFFERENTIABLE_FIELDS`)
+    # shows here as a difference.
     from equinox.internal._loop import checkpointed
 
     found = []
@@ -142,6 +145,8 @@ def test_the_loop_starts_with_the_derivatives_its_body_gives():
         return out
 
     def height(x0, args):
+        if engine == "batched":
+            return hj.simulate_batch(BALL, x0[None], "flight", 0.0, 2.0, args, engine="batched").final_state[0, 0]
         return hj.simulate(BALL, x0, "flight", 0.0, 2.0, args).final_state[0]
 
     x0, args = jnp.array([1.0, 0.3]), {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
@@ -153,5 +158,5 @@ def test_the_loop_starts_with_the_derivatives_its_body_gives():
         checkpointed._resolve_perturb_val = resolve
     assert len(found) == 2
     for start, fixed in found:
-        assert sum(fixed) > 2  # the record and the held step carry derivatives
+        assert sum(fixed) > 2  # the record carries derivatives
         assert start == fixed

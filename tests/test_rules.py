@@ -419,6 +419,28 @@ def test_event_point_derivatives_by_the_implicit_function_theorem():
     assert bool(grazing)
 
 
+def test_onto_the_guard_is_a_newton_step_only_where_the_state_is_outside():
+    assert float(R.onto_the_guard(jnp.asarray(-1e-14), jnp.asarray(-3.0))) == 0.0
+    assert float(R.onto_the_guard(jnp.asarray(2e-14), jnp.asarray(4.0))) == 0.0  # leaving: not a crossing
+    assert float(R.onto_the_guard(jnp.asarray(3e-14), jnp.asarray(-2.0))) == 1.5e-14
+
+
+def test_event_point_reports_a_state_in_the_guard_when_the_dense_output_rounds_outside():
+    # The dense output read at the located time lies 1e-14 above the floor (its rounding, at the
+    # scale of a long step's change): the reported state is moved along the flow onto the guard,
+    # and the time with it, by 1e-14 / |v|.
+    h0, t0 = jnp.asarray(1.0), jnp.asarray(0.5)
+    t_star = t0 + jnp.sqrt(2 * h0 / G)
+    v = math.sqrt(2 * G)
+    above = _FreeFall(t0, h0 + 1e-14, jnp.asarray(0.0))
+    t_ev, y_before, _ = R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, above,
+                                      {"g": G, "e": 0.8})
+    assert float(above.evaluate(t_star)[0]) > 0
+    assert -1e-15 <= float(y_before[0]) <= 0.0
+    np.testing.assert_allclose(float(t_ev - t_star), 1e-14 / v, atol=2 * EPS * float(t_star))  # ulps of t
+    np.testing.assert_allclose(float(y_before[1]), -v, rtol=1e-12)
+
+
 # ---------------------------------------------------------------------------- the jump
 def test_blocks_is_a_domain_component_first():
     assert bool(R.blocks(jnp.asarray(2), 2)) and not bool(R.blocks(jnp.asarray(1), 2))

@@ -73,6 +73,7 @@ from .._step.runge_kutta import (
 )
 from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
 from .lanes import Finals, LaneRecord, Lanes, _gather_lanes, _scatter_lanes, _take_lanes, default_block
+from .seeding import perturbed_like_the_body
 from .xla_cpu import _computed_once, _materialize, _rows_all, _rows_any, first_lanes, running_count
 
 sg = lax.stop_gradient
@@ -195,6 +196,14 @@ class StepEvent(NamedTuple):
     simultaneous: jax.Array
     grazing: jax.Array
     next: EpochStart
+
+
+# The carried fields (of `Lanes` and `LaneRecord`) that the body computes from the inputs
+# (t0, x0, args, t1), whichever of them is differentiated (`perturbed_like_the_body`).
+LANE_DIFFERENTIABLE_FIELDS = (
+    "t", "y", "f0", "zeno_time", "zeno_state", "recent_times", "recent_states",
+    "event_times", "states_before", "states_after", "ys", "finals",
+)
 
 
 class BatchedLoop:
@@ -796,7 +805,10 @@ class BatchedLoop:
         save times per pass; a bounded loop of passes covers a step with more."""
         S = self.save_ts.shape[0]
         lanes = st.exec_id
-        coeffs = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks).coeffs  # (D+1, n, N)
+        dense = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks)  # coeffs (D+1, n, N)
+        # The same, its arrays with a save-time axis before the lanes' (lanes last).
+        windowed = ChebyshevDense(t0=t, t1=t_next, y0=dense.y0[:, None, :], dy=dense.dy[:, None, :],
+                                  coeffs=dense.coeffs[:, :, None, :])
 
         def pending(ptr):
             return took & (ptr < S) & (self.save_sorted[jnp.minimum(ptr, S - 1)] <= t_end)
@@ -806,8 +818,7 @@ class BatchedLoop:
             idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
             ok = took & (idx < S) & saved_in_step(tt, sg(t_from), t_end)
-            dense = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs[:, :, None, :])  # lanes last
-            vals = dense.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
+            vals = windowed.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
             ys = rec.ys.at[lanes[None, :], rows].set(jnp.moveaxis(vals, 0, -1), mode="drop")
             modes = rec.saved_modes.at[lanes[None, :], rows].set(
@@ -821,17 +832,17 @@ class BatchedLoop:
 
         rec, ptr = lax.cond(jnp.any(pending(st.save_ptr)), run, lambda c: c, (rec, st.save_ptr))
         if self.save_t1:
-            rec = self.save_at_t1(st, rec, mode, took, t, t_next, t_end, coeffs, t_from)
+            rec = self.save_at_t1(st, rec, mode, took, t, t_next, t_end, dense, t_from)
         return eqx.tree_at(lambda s: s.save_ptr, st, ptr), rec
 
-    def save_at_t1(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, coeffs,
+    def save_at_t1(self, st: Lanes, rec: LaneRecord, mode, took, t, t_next, t_end, dense,
                    t_from) -> LaneRecord:
         """Write the last save, at each lane's own t1 (`SaveAt(t1=True)`), where t1 lies in the
         step's (t_from, t_end] (`saved_in_step`; `save`'s arguments), from the step's dense output."""
         hit = took & saved_in_step(st.t1, sg(t_from), t_end)
 
         def put(rec):
-            vals = ChebyshevDense(t0=t, t1=t_next, coeffs=coeffs).evaluate(jnp.clip(st.t1, sg(t), sg(t_next)))
+            vals = dense.evaluate(jnp.clip(st.t1, sg(t), sg(t_next)))
             ids = jnp.where(hit, st.exec_id, self.num_exec)  # num_exec: dropped
             ys = rec.ys.at[ids, -1].set(vals.T, mode="drop")
             modes = rec.saved_modes.at[ids, -1].set(mode, mode="drop")
@@ -854,10 +865,12 @@ class BatchedLoop:
 
     def _run(self, t0, y0, mode0) -> tuple[Finals, LaneRecord]:
         rounds = -(-self.num_exec // self.N)  # executions per lane, at most
+        carry = perturbed_like_the_body(self.init(t0, y0, mode0), (t0, y0, self.args, self.t1),
+                                        LANE_DIFFERENTIABLE_FIELDS)
         st, rec = eqxi.while_loop(
             lambda c: jnp.any(~c[0].done) | (c[0].next_exec < self.num_exec),
             self.body,
-            self.init(t0, y0, mode0),
+            carry,
             max_steps=rounds * (self.max_steps + self.max_epochs + 2),
             # The record is write-only in the loop, each entry written once: as buffers it is
             # updated in place and kept out of the reverse pass's checkpoints.

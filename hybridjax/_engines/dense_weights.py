@@ -81,45 +81,68 @@ CHEB_DEGREE = 9  # >= the degree in theta of every unrolled solver's dense outpu
 
 
 def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = CHEB_DEGREE):
-    """The solver's dense output y(theta) on the unit interval in the Chebyshev basis:
-    y(theta) = sum_m T_m(2 theta - 1) (A_m0 y0 + A_m1 y1 + sum_i A_m(2+i) k_i), exact for
-    polynomials of degree <= `degree` (the discrete Chebyshev transform at degree + 1 nodes,
-    well conditioned where monomial coefficients are not). Returns A as nested lists, one row
-    per degree up to the interpolant's own."""
+    r"""The solver's dense output on the unit interval, written about the step's ends,
+
+    $$y(\theta) = y_0 + \theta\,\Delta y + \theta (1 - \theta)\, q(\theta), \qquad
+    \Delta y = y_1 - y_0,$$
+
+    with $q$ in the Chebyshev basis: $q(\theta) = \sum_m T_m(2\theta - 1)\,(A_{m1} \Delta y +
+    \sum_i A_{m(2+i)} k_i)$. $q = (y - y_0 - \theta\,[y(1) - y_0]) / (\theta (1 - \theta))$ is a
+    polynomial (the numerator vanishes at both ends): the numerator's Chebyshev transform at
+    `degree` + 1 nodes (exact for degrees <= `degree`) divided by $\theta (1 - \theta)$ as a
+    series; $y(1) = y_1$ for the solver's own step. Near either end the terms are as small as
+    the change since that end (a Chebyshev series of $y$ itself sums terms of the size of the
+    whole step's change: a long step's dense output would round at that scale where a guard
+    crosses zero). Returns A as nested lists, columns
+    (y0, y1, k_1, ...) with $A_{m0} = -A_{m1}$, one row per degree up to $q$'s own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
-    value, _ = dense_weights(interpolation_cls, num_stages, (nodes + 1) / 2, dtype)
-    V = np.array([[a, b, *c] for a, b, c in value])  # (nodes, 2 + stages)
+    thetas = (nodes + 1) / 2
+    value, _ = dense_weights(interpolation_cls, num_stages, (*thetas, 1.0), dtype)
+    V = np.array([[a, b, *c] for a, b, c in value])  # (nodes + 1, 2 + stages)
+    V, end = V[:-1], V[-1]
+    start = np.zeros_like(end)
+    start[0] = 1.0
+    L = V - (1 - thetas)[:, None] * start - thetas[:, None] * end  # y - [(1 - th) y(0) + th y(1)]
     T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
-    A = (2.0 / (degree + 1)) * T @ V
-    A[0] /= 2
-    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
+    C = (2.0 / (degree + 1)) * T @ L
+    C[0] /= 2
+    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 7 for
     # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
-    size = np.abs(A).max(axis=1)
-    keep = 1 + int(np.nonzero(size > 64 * np.finfo(dtype).eps * size.max())[0].max())
-    return A[:keep].tolist()
+    size = np.abs(C).max(axis=1)
+    big = np.nonzero(size > 64 * np.finfo(dtype).eps * max(size.max(), 1.0))[0]
+    C = C[:max(3, 1 + int(big.max()) if big.size else 0)]
+    # q = L / (theta (1 - theta)), theta (1 - theta) = (1 - x^2) / 4 = (T_0 - T_2) / 8: exact
+    # division of Chebyshev series (L vanishes at x = +-1), column by column.
+    A = np.zeros((C.shape[0] - 2, C.shape[1]))
+    for j in range(C.shape[1]):
+        q = np.polynomial.chebyshev.chebdiv(C[:, j], [0.125, 0.0, -0.125])[0]  # zero rows trimmed
+        A[:q.shape[0], j] = q
+    # y0's weight is minus y1's (constants reproduced): the series reads y1 - y0, once.
+    A[:, 0] = -A[:, 1]
+    return A.tolist()
 
 
 class ChebyshevDense(eqx.Module):
-    """One lane's dense output as a Chebyshev series in x = 2 theta - 1 (Clenshaw's
-    recurrence): the same polynomial as diffrax's interpolation, evaluated without the small
-    matrix products that vmap turns into batched dots."""
+    r"""One lane's dense output on $[t_0, t_1]$, $y_0 + \theta\,\Delta y + \theta(1-\theta)\,q(\theta)$
+    with $q$ a Chebyshev series in $x = 2\theta - 1$ (Clenshaw's recurrence; `chebyshev_weights`):
+    the same polynomial as diffrax's interpolation, evaluated without the small matrix products
+    that vmap turns into batched dots."""
 
     t0: jax.Array
     t1: jax.Array
-    coeffs: jax.Array  # (degree + 1, n)
+    y0: jax.Array  # (n,)
+    dy: jax.Array  # (n,), y1 - y0
+    coeffs: jax.Array  # (degree + 1, n), q's
 
     @classmethod
     def from_stages(cls, A, t0, t1, y0, y1, ks):
-        """The series of the step from `y0` to `y1` with stages `ks` (`chebyshev_weights` `A`),
-        written as $y_0$ plus the series of $y - y_0$: the interpolant reproduces constants
-        ($a_j + b_j = [j = 0]$), so this is the same polynomial, and a component constant over
-        the step ($y_1 = y_0$, its stages zero) has the coefficients $y_0, 0, 0, \dots$ exactly
-        and evaluates to $y_0$ bit for bit, where $a_j y_0 + b_j y_1$ is off by rounding (a
-        table index kept in the state would read 2 as 1.999... and truncate to 1)."""
+        """The dense output of the step from `y0` to `y1` with stages `ks` (`chebyshev_weights`
+        `A`). A component constant over the step ($y_1 = y_0$, its stages zero) has $\Delta y = 0$
+        and $q = 0$ exactly and evaluates to $y_0$ bit for bit (a table index kept in the state
+        must not read 2 as 1.999... and truncate to 1)."""
         dy = y1 - y0
         rows = [r[1] * dy + weighted_sum(r[2:], list(ks), y0) for r in A]
-        rows[0] = rows[0] + y0
-        return cls(t0=t0, t1=t1, coeffs=jnp.stack(rows))
+        return cls(t0=t0, t1=t1, y0=y0, dy=dy, coeffs=jnp.stack(rows))
 
     def evaluate(self, t):
         span = self.t1 - self.t0
@@ -128,4 +151,5 @@ class ChebyshevDense(eqx.Module):
         b1, b2 = jnp.zeros_like(self.coeffs[0]), jnp.zeros_like(self.coeffs[0])
         for c in self.coeffs[:0:-1]:
             b1, b2 = 2 * x * b1 - b2 + c, b1
-        return x * b1 - b2 + self.coeffs[0]
+        q = x * b1 - b2 + self.coeffs[0]
+        return self.y0 + theta * self.dy + (theta * (1 - theta)) * q

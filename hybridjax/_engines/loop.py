@@ -72,7 +72,8 @@ from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import detect_zeno
 from .._step.runge_kutta import UnrolledERK
-from .dense_weights import dense_weights, stage_combination
+from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
+from .seeding import perturbed_like_the_body
 
 sg = lax.stop_gradient
 # Save rows interpolated as a window when every execution's rows in a step lie within this many
@@ -190,45 +191,6 @@ DIFFERENTIABLE_FIELDS = (
 )
 
 
-@jax.custom_jvp
-def _zero_from(xs):
-    """0.0, with a (zero) derivative wherever one of `xs` has one."""
-    return jnp.zeros((), jnp.result_type(*xs))
-
-
-@_zero_from.defjvp
-def _zero_from_jvp(primals, tangents):
-    (xs,), (txs,) = primals, tangents
-    zero = jnp.zeros((), jnp.result_type(*xs))
-    return zero, zero * sum(jnp.sum(t) for t in txs)  # linear in the tangents: transposable
-
-
-def perturbed_like_the_body(carry, inputs, fields=DIFFERENTIABLE_FIELDS):
-    """`carry` with each of its `fields` (float leaves) minus a zero that carries a derivative
-    wherever one of `inputs` does: the same values bit for bit (x - 0 is x, -0 and inf
-    included), differentiated as the body will differentiate them.
-
-    Under differentiation, equinox's while loops (and JAX's) find which carried values carry
-    a derivative by differentiating the body, growing the set from the initial values' until
-    it stops growing: one trace of the body's derivative per round. The record and the
-    held-step fields start as constants and are reached a round or two later; started where
-    the body takes them, the first round confirms the set. The derivatives are unchanged (the
-    added tangents are zero); only tracing is saved."""
-    leaves = [x for x in jtu.tree_leaves(inputs) if eqx.is_inexact_array(x)]
-    if not leaves:
-        return carry
-    z = _zero_from(leaves)
-
-    def seeded(obj):
-        names = [n for n in fields if hasattr(obj, n)]
-        return eqx.tree_at(
-            lambda o: [getattr(o, n) for n in names], obj,
-            [jtu.tree_map(lambda a: a - z.astype(a.dtype) if eqx.is_inexact_array(a) else a, getattr(obj, n))
-             for n in names])
-
-    return tuple(seeded(c) for c in carry)
-
-
 class Loop:
     """The loop for one system and one set of options; `run(t0, x0, mode0, args)` runs it."""
 
@@ -282,6 +244,9 @@ class Loop:
         # (constant steps) get sqrt(eps), the accuracy a double-precision step can promise.
         self.rtol = jnp.sqrt(self.eps) if rtol is None else rtol
         self.atol = jnp.sqrt(self.eps) if atol is None else atol
+        # An explicit RK's dense output as a Chebyshev series of its stages (`dense`).
+        self.cheb = (chebyshev_weights(solver.interpolation_cls, len(solver.c) + 1, dtype)
+                     if isinstance(solver, UnrolledERK) else None)
 
     # ----------------------------------------------------------------- helpers
     def error_order(self):
@@ -660,11 +625,16 @@ class Loop:
         return _select(active, new, st_all), saved
 
     def dense(self, t, t_next, dense_info):
-        """The step's dense output on [t, t_next]: diffrax's interpolation, where events are
-        located (near grazing a root moves by the rounding error of g over its slope, and a
-        re-expansion of the polynomial, in the Chebyshev basis or by stage weights, adds to
-        that error)."""
-        return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+        """The step's dense output on [t, t_next], where events are located and saved states
+        read: for an explicit RK, the solver's interpolation written as a Chebyshev series of
+        its stages (`ChebyshevDense`, as the batched engine's: a few elementwise operations per
+        evaluation, where diffrax's interpolation builds its polynomials in theta and contracts
+        them with the stages, a small matrix product that `jax.vmap` makes a batched one); for
+        any other solver, its own interpolation."""
+        if self.cheb is None:
+            return self.solver.interpolation_cls(t0=t, t1=t_next, **dense_info)
+        ks = [dense_info["k"][i] for i in range(dense_info["k"].shape[0])]
+        return ChebyshevDense.from_stages(self.cheb, t, t_next, dense_info["y0"], dense_info["y1"], ks)
 
     def detection(self, kern, mode, st: LoopState, args_sg, active) -> Detection:
         """The held step's crossings and dip candidates (`first_crossings`, `dip_candidates`,
@@ -782,7 +752,7 @@ class Loop:
 
     def run(self, t0, y0, mode0) -> tuple[LoopState, EventRecord]:
         carry = (self.init(t0, y0, mode0), self.init_record(t0, y0, mode0))
-        carry = perturbed_like_the_body(carry, (t0, y0, self.args, self.t1))
+        carry = perturbed_like_the_body(carry, (t0, y0, self.args, self.t1), DIFFERENTIABLE_FIELDS)
         # Steps, zero-length epochs, and the waits for the event phase: alone, an execution
         # never waits; under vmap at most MAX_WAIT iterations before each event or epoch start
         # (a held step whose dip stays positive waits too, and is not counted here).

@@ -18,7 +18,8 @@ functions and tests):
   `first_crossings`, `dip_candidates`, `dip_filter`;
 - location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`; the guards
   reached at one instant, `simultaneous_set`, and the simultaneity rule,
-  `resolve_simultaneous`), `event_point` (the implicit-function event time);
+  `resolve_simultaneous`), `event_point` (the implicit-function event time; its state in
+  the guard, `onto_the_guard`);
 - the jump: `blocks`, `jump_outcome`, `push_recent`, `zeno_completion`;
 - saving: `saved_in_step`;
 - the precedence of statuses: `stop_first`.
@@ -59,6 +60,7 @@ from .locate import event_point as event_point
 from .locate import first_event as first_event
 from .locate import locate_minimum as locate_minimum
 from .locate import locate_root as locate_root
+from .locate import onto_the_guard as onto_the_guard
 from .locate import resolve_simultaneous as resolve_simultaneous
 from .locate import root_bracket as root_bracket
 from .locate import simultaneous_set as simultaneous_set

@@ -386,20 +386,38 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
         G, G_w = jax.jvp(guard, (tt + w, X), (jnp.ones_like(tt), X_w))
         return G, X, G_w, X_w
 
-    w0 = jnp.zeros_like(t_s)
-    p = (t_s, x_star, diff_args)
-    local_c, consts = _closure_converted(local, w0, p)
-    w, y_ev = _located(local_c, w0, p, consts)
-
-    # Grazing test on values alone.
+    # The guard, its rate along the true vector field and the grazing test, on values alone.
     t_v, x_v, a_v = sg((t_star, x_star, args))
     F_v = kern.flow(mode, t_v, x_v, a_v)
-    gt, gx = jax.grad(lambda tt, xx: kern.guards(mode, tt, xx, a_v)[k], argnums=(0, 1))(t_v, x_v)
+    g_v, (gt, gx) = jax.value_and_grad(lambda tt, xx: kern.guards(mode, tt, xx, a_v)[k],
+                                       argnums=(0, 1))(t_v, x_v)
     gdot = gt + unrolled_sum(gx * F_v)  # dg/dt along the true vector field (see `fold`)
     size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(F_v**2))
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
+
+    w0 = onto_the_guard(g_v, gdot)
+    p = (t_s, x_star, diff_args)
+    local_c, consts = _closure_converted(local, w0, p)
+    w, y_ev = _located(local_c, w0, p, consts)
+    # X(w0; p) to first order in w0 (`onto_the_guard`); x* itself where w0 = 0 (F may be inf).
+    y_ev = y_ev + jnp.where(w0 != 0, w0 * F_v, jnp.zeros_like(F_v))
     t_ev = t_star + (t_s - sg(t_s)) + w
     return t_ev, y_ev, grazing
+
+
+def onto_the_guard(g, rate):
+    r"""The elapsed time $w$ past a located event at which its state lies in the guard,
+    $g \le 0$: 0 where the state at the located time does (always, but for rounding),
+    else one Newton step along the flow, $w = -g / \dot g$ ($\dot g < 0$ the guard's rate
+    along the vector field), the state moving by $w F$.
+
+    The root search keeps $g \le 0$ on its own evaluations of the dense output; the state
+    reported is evaluated again (it carries the derivatives), and that evaluation can round
+    $g$ above zero by ulps of the dense output's terms, which scale with the step's change
+    $|y_1 - y_0|$, not with the state. After the step, $g$ is rounded on $x^* + w F$, at the
+    scale of the state near the guard: the accuracy an execution promises at a pre-event
+    state. $w$ is a few ulps of $t$ where the guard is crossed transversally."""
+    return sg(jnp.where((g > 0) & (rate < 0), -g / jnp.where(rate < 0, rate, -1.0), 0.0))
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
