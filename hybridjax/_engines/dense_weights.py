@@ -93,8 +93,8 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     series; $y(1) = y_1$ for the solver's own step. Near either end the terms are as small as
     the change since that end (a Chebyshev series of $y$ itself sums terms of the size of the
     whole step's change: a long step's dense output would round at that scale where a guard
-    crosses zero). Returns A as nested lists, columns
-    (y0, y1, k_1, ...) with $A_{m0} = -A_{m1}$, one row per degree up to $q$'s own."""
+    crosses zero). Returns A as nested lists, columns (y0, y1, k_1, ...) with
+    $A_{m0} = -A_{m1}$, one row per degree up to $q$'s own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
     thetas = (nodes + 1) / 2
     value, _ = dense_weights(interpolation_cls, num_stages, (*thetas, 1.0), dtype)
@@ -106,7 +106,7 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     T = np.cos(np.outer(np.arange(degree + 1), np.arccos(nodes)))  # T_m(x_j)
     C = (2.0 / (degree + 1)) * T @ L
     C[0] /= 2
-    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 7 for
+    # Rows past the interpolant's true degree (4 for Tsit5 and Dopri5, 3 for Bosh3, 6 for
     # Dopri8) hold only rounding: dropped, each evaluation's recurrence is that much shorter.
     size = np.abs(C).max(axis=1)
     big = np.nonzero(size > 64 * np.finfo(dtype).eps * max(size.max(), 1.0))[0]

@@ -29,8 +29,8 @@ def perturbed_like_the_body(carry, inputs, fields):
     a derivative by differentiating the body, growing the set from the initial values' until
     it stops growing: one trace of the body's derivative per round. A loop's record (and the
     per-execution loop's held step) starts as constants and is reached a round or two later;
-    started where the body takes it, the first round confirms the set. The derivatives are unchanged (the
-    added tangents are zero); only tracing is saved."""
+    started where the body takes it, the first round confirms the set. The derivatives are
+    unchanged (the added tangents are zero); only tracing is saved."""
     leaves = [x for x in jtu.tree_leaves(inputs) if eqx.is_inexact_array(x)]
     if not leaves:
         return carry
