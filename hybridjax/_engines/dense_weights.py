@@ -1,5 +1,5 @@
-"""The batched engine's dense output: the weights of diffrax's interpolation at fixed fractions of a
-step, and its Chebyshev series, as linear maps of the step's stages."""
+"""The engines' dense output: the weights of diffrax's interpolation at fixed fractions of a step,
+and its Chebyshev form about the step's ends, as linear maps of the step's stages."""
 
 import functools
 
@@ -48,7 +48,8 @@ def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str
 
 def stage_combination(weights, y0, y1, ks):
     """a y0 + b y1 + sum_i c_i k_i for one `(a, b, [c_i])` of `dense_weights` (or a row of
-    `chebyshev_weights`): the dense output's value or slope at one fraction, elementwise."""
+    `chebyshev_weights`, one coefficient of q): the dense output's value or slope at one
+    fraction, elementwise."""
     a, b, c = weights
     return a * y0 + b * y1 + weighted_sum(c, list(ks), y0)
 

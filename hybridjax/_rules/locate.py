@@ -336,7 +336,8 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
 
     p = (t_s, x*, args) (x* carries the dependence on the epoch's start state and parameters
     through the dense output's coefficients). The event is the root w(p) of
-    G(w; p) = g(t_s + u* + w, X(w; p)): w = 0 in value, with the derivative
+    G(w; p) = g(t_s + u* + w, X(w; p)): w = w0 in value (0, or `onto_the_guard`'s step of a
+    few ulps where x* rounds outside the guard), with the derivative
 
         dw = -(D_p G dp) / D_w G,     D_w G = D_t g + D_x g F   (the guard's rate along the flow),
 
@@ -422,8 +423,8 @@ def onto_the_guard(g, rate):
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _located(local, w0, p, consts):
-    """The root w(p) = 0 of G(w; p) and the state X(w(p); p) = x* (`event_point`): in value
-    (0, x*); derivatives by `_located_jvp`.
+    """The root w(p) of G(w; p) and the state X(w(p); p) (`event_point`): in value (w0, x*)
+    (the caller adds w0 F to the state); derivatives by `_located_jvp`.
 
     Each output is selected against a sum over every input (never taken: XLA removes it), so
     that under `jax.vmap` the outputs are batched wherever their tangents are: JAX's batching
