@@ -391,6 +391,7 @@ class _FreeFall(eqx.Module):
     t0: jax.Array
     h0: jax.Array
     v0: jax.Array
+    t1: float = math.inf  # the step's end
 
     def evaluate(self, t):
         s = t - self.t0
@@ -439,6 +440,23 @@ def test_event_point_reports_a_state_in_the_guard_when_the_dense_output_rounds_o
     assert -1e-15 <= float(y_before[0]) <= 0.0
     np.testing.assert_allclose(float(t_ev - t_star), 1e-14 / v, atol=2 * EPS * float(t_star))  # ulps of t
     np.testing.assert_allclose(float(y_before[1]), -v, rtol=1e-12)
+
+
+def test_event_point_at_the_end_of_a_step_without_an_event_keeps_the_state_and_time():
+    # A held step whose dip stays positive reaches event_point with t* its end and g > 0
+    # (the values are discarded there): no shift, and finite derivatives.
+    h0, t0 = jnp.asarray(1.0), jnp.asarray(0.5)
+
+    def at_end(h0):
+        fall = _FreeFall(t0, h0, jnp.asarray(0.0), 0.6)
+        t_ev, y, _ = R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), jnp.asarray(0.6), fall,
+                                   {"g": G, "e": 0.8})
+        return t_ev, y
+
+    t_ev, y = at_end(h0)
+    assert float(t_ev) == 0.6
+    np.testing.assert_array_equal(y, _FreeFall(t0, h0, jnp.asarray(0.0)).evaluate(jnp.asarray(0.6)))
+    assert np.all(np.isfinite(jax.jacfwd(lambda h: at_end(h)[1])(h0)))
 
 
 # ---------------------------------------------------------------------------- the jump

@@ -396,7 +396,8 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
     size = jnp.abs(gt) + jnp.sqrt(unrolled_sum(gx * gx)) * jnp.sqrt(unrolled_sum(F_v**2))
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
 
-    w0 = onto_the_guard(g_v, gdot)
+    # Within the step: where the held step has no event (t* its end, g > 0) the shift is 0.
+    w0 = jnp.minimum(onto_the_guard(g_v, gdot), sg(interp.t1) - t_v)
     p = (t_s, x_star, diff_args)
     local_c, consts = _closure_converted(local, w0, p)
     w, y_ev = _located(local_c, w0, p, consts)
@@ -417,7 +418,8 @@ def onto_the_guard(g, rate):
     $g$ above zero by ulps of the dense output's terms, which scale with the step's change
     $|y_1 - y_0|$, not with the state. After the step, $g$ is rounded on $x^* + w F$, at the
     scale of the state near the guard: the accuracy an execution promises at a pre-event
-    state. $w$ is a few ulps of $t$ where the guard is crossed transversally."""
+    state. $w$ is a few ulps of $t$ where the guard is crossed transversally; `event_point`
+    keeps it within the step."""
     return sg(jnp.where((g > 0) & (rate < 0), -g / jnp.where(rate < 0, rate, -1.0), 0.0))
 
 
