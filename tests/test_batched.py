@@ -10,6 +10,7 @@ one pass (at most two executions need it) or in several (more do).
 import functools
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -212,14 +213,9 @@ def _assert_same_as_seven_by_vmap(got):
 
 def test_lanes_fewer_than_executions_take_the_next_execution_when_one_ends():
     # 7 executions on 2 lanes: each lane runs several in turn, with its own args, start and end
-    # times, save times and final status; held to vmap(simulate)
-    x0 = SEVEN[0]
+    # times, save times and final status; held to vmap(simulate) (the gradient through lane
+    # refills: test_batched_reverse_mode_gradients_match_per_execution_engine)
     _assert_same_as_seven_by_vmap(hj.simulate_batch(BALL, *SEVEN, lanes=2, block=1, engine="batched", **SEVEN_KW))
-    # and through the lane refills, the gradient (reverse mode) of the final heights
-    grad = lambda **o: jax.jit(jax.grad(lambda x: jnp.sum(hj.simulate_batch(  # noqa: E731
-        BALL, x, "flight", 0.0, 1.5, BALL_ARGS, stepsize_controller=TIGHT, **o).final_state[:, 0])))
-    np.testing.assert_allclose(grad(lanes=1, engine="batched")(x0[:3]), grad(engine="vmap")(x0[:3]),
-                               rtol=1e-7, atol=1e-9)
 
 
 def test_two_block_sizes_run_the_same_executions():
@@ -275,46 +271,55 @@ def _final_heights(engine, adjoint=diffrax.RecursiveCheckpointAdjoint()):
     return f
 
 
+# Three executions on two lanes (one lane refill), a gathered block of one, saves on both sides of
+# bounces: one reverse-mode program per engine serves every gradient test below. Its output is a
+# vector of losses, each a different part of the solution, and the test of each part pulls back
+# its own unit cotangent through the one compiled VJP.
+GRAD_X0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5]])
+LOSS_PARTS = ("final heights", "saved states", "event times and post-event states")
+
+
+def _losses(x, engine, **options):
+    s = hj.simulate_batch(BALL, x, "flight", 0.0, 2.0, BALL_ARGS, saveat=jnp.linspace(0.0, 2.0, 60),
+                          stepsize_controller=TIGHT, max_epochs=16, engine=engine, **options)
+    # event times weighted by their index, so that a record written in the wrong slot shows
+    times = jnp.where(jnp.isfinite(s.event_times), s.event_times, 0.0) * jnp.arange(1.0, 17.0)[None]
+    after = jnp.where(jnp.isfinite(s.states_after), s.states_after, 0.0)
+    return jnp.stack([jnp.sum(s.final_state[:, 0]), jnp.sum(s.ys[:, 37:45]), jnp.sum(times) + jnp.sum(after)])
+
+
+@functools.cache
+def _loss_pullback(engine):
+    options = dict(block=1, lanes=2) if engine == "batched" else {}
+    return jax.jit(lambda x, ct: jax.vjp(lambda v: _losses(v, engine, **options), x)[1](ct)[0])
+
+
+def _loss_gradient(engine, part):
+    return _loss_pullback(engine)(GRAD_X0, jnp.eye(len(LOSS_PARTS))[LOSS_PARTS.index(part)])
+
+
+@pytest.mark.parametrize("part", LOSS_PARTS)
+def test_batched_reverse_mode_gradients_match_per_execution_engine(part):
+    # the record is written in place (loop buffers kept out of the checkpoints), the saves through
+    # the nested loop that writes them, all through the lane refill and the gathered block
+    want = np.asarray(_loss_gradient("vmap", part))
+    assert np.all(want != 0.0)  # every execution's part depends on its initial state
+    np.testing.assert_allclose(_loss_gradient("batched", part), want, rtol=1e-7, atol=1e-9)
+
+
 def test_batched_gradients_reverse_forward_and_finite_differences_agree():
-    x0 = jnp.array([[1.0, 0.3], [0.8, -0.2]])
     # each final height depends on its own initial state only: d sum / d x0 is the per-row gradient
-    g_rev = jax.jit(jax.grad(lambda x: jnp.sum(_final_heights("batched")(x))))(x0)
-    fwd = _final_heights("batched", diffrax.ForwardMode())
-    J = jax.jit(jax.jacfwd(lambda v: fwd(v.reshape(2, 2))))(x0.reshape(-1))
-    np.testing.assert_allclose(J.reshape(2, 2, 2)[[0, 1], [0, 1]], g_rev, rtol=1e-7, atol=1e-9)
-    heights = jax.jit(_final_heights("batched", diffrax.ForwardMode()))  # one compile for all 8 calls
+    g_rev = _loss_gradient("batched", "final heights")
+    heights = jax.jit(_final_heights("batched", diffrax.ForwardMode()))  # one compile for every call
+    J = jax.jit(jax.jacfwd(lambda v: heights(v.reshape(GRAD_X0.shape))))(GRAD_X0.reshape(-1))
+    rows = jnp.arange(GRAD_X0.shape[0])
+    np.testing.assert_allclose(J.reshape(GRAD_X0.shape[0], *GRAD_X0.shape)[rows, rows], g_rev, rtol=1e-7, atol=1e-9)
     # Step 1e-5, not sqrt(eps): the heights carry ~1e-12 of solver and rounding noise (at
     # rtol 1e-10), which a 1.5e-8 step turns into ~1e-4 of derivative noise; at 1e-5 the noise is
     # ~1e-7 and the truncation error ~h^2 = 1e-10.
-    fd = central_difference(lambda v: np.asarray(heights(jnp.asarray(v).reshape(2, 2))),
-                            np.asarray(x0).reshape(-1), eps=1e-5)
+    fd = central_difference(lambda v: np.asarray(heights(jnp.asarray(v).reshape(GRAD_X0.shape))),
+                            np.asarray(GRAD_X0).reshape(-1), eps=1e-5)
     np.testing.assert_allclose(np.asarray(J), fd, rtol=1e-5, atol=1e-6)
-
-
-def test_batched_gradient_of_saved_states_matches_per_execution_engine():
-    # saved states on both sides of bounces, through the nested loop that writes them
-    def saved(engine):
-        return jax.jit(jax.grad(lambda x: jnp.sum(hj.simulate_batch(
-            BALL, x, "flight", 0.0, 2.0, BALL_ARGS, saveat=jnp.linspace(0.0, 2.0, 60),
-            stepsize_controller=TIGHT, engine=engine).ys[:, 37:45])))
-
-    x0 = jnp.array([[1.0, 0.3], [0.7, -0.4]])
-    np.testing.assert_allclose(saved("batched")(x0), saved("vmap")(x0), rtol=1e-7, atol=1e-9)
-
-
-def test_batched_gradient_of_event_times_and_post_event_states_matches_per_execution_engine():
-    # the record is written in place (loop buffers kept out of the checkpoints): its gradient,
-    # through the gathered block (block=1) and lane refills (lanes=2), against vmap(simulate)
-    def loss(engine, **o):
-        def f(x):
-            s = hj.simulate_batch(BALL, x, "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT,
-                                  max_epochs=16, engine=engine, **o)
-            times = jnp.where(jnp.isfinite(s.event_times), s.event_times, 0.0) * jnp.arange(1.0, 17.0)[None]
-            return jnp.sum(times) + jnp.sum(jnp.where(jnp.isfinite(s.states_after), s.states_after, 0.0))
-        return jax.jit(jax.grad(f))
-
-    x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5]])
-    np.testing.assert_allclose(loss("batched", block=1, lanes=2)(x0), loss("vmap")(x0), rtol=1e-7, atol=1e-9)
 
 
 def test_batched_engine_in_float32_matches_the_closed_form():
@@ -332,18 +337,67 @@ def test_batched_engine_in_float32_matches_the_closed_form():
                                     diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()],
                          ids=lambda s: type(s).__name__)
 def test_chebyshev_form_of_the_dense_output_equals_diffrax_interpolation(solver):
-    # Random stages, and y1 the interpolant's own end value (as a step's is, to rounding).
+    # Random stages (diffrax's k_i: the field's increments over the step), and y1 the step's own
+    # end, y0 + sum_i b_i k_i.
     rng = np.random.default_rng(4)
-    s = len(type(solver).tableau.c) + 1
-    y0, y1, k = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=(s, 3)))
+    tableau = type(solver).tableau
+    s = len(tableau.c) + 1
+    y0, k = jnp.asarray(rng.normal(size=3)), jnp.asarray(rng.normal(size=(s, 3)))
     t0, t1 = 0.7, 0.95
-    y1 = solver.interpolation_cls(t0=t0, t1=t1, y0=y0, y1=y1, k=k).evaluate(t1)
+    y1 = y0 + jnp.asarray(tableau.b_sol) @ k
     A = chebyshev_weights(solver.interpolation_cls, s, jnp.float64)
     ours = ChebyshevDense.from_stages(A, t0, t1, y0, y1, k)
     ref = solver.interpolation_cls(t0=t0, t1=t1, y0=y0, y1=y1, k=k)
+    # The form meets y1 at the step's end; diffrax's interpolant ends at y0 + sum_i b_i(1) k_i,
+    # which is y1 to rounding, but ~1e-12 away for Dopri8 (its interpolation's coefficients are
+    # decimals to about that precision): the difference is that miss, spread linearly.
+    miss = y1 - ref.evaluate(t1)
+    assert np.max(np.abs(miss)) < (2e-12 if isinstance(solver, diffrax.Dopri8) else 1e-14)
     for t in np.linspace(t0, t1, 11):
-        np.testing.assert_allclose(ours.evaluate(t), ref.evaluate(t), rtol=1e-12, atol=1e-13)
-    assert np.array_equal(ours.evaluate(t0), y0)  # exact at the step's start
+        want = ref.evaluate(t) + (t - t0) / (t1 - t0) * miss
+        np.testing.assert_allclose(ours.evaluate(t), want, rtol=1e-12, atol=1e-13)
+    assert np.array_equal(ours.evaluate(t0), y0)  # exact at the step's ends
+    np.testing.assert_allclose(ours.evaluate(t1), y1, rtol=0, atol=4 * np.finfo(np.float64).eps)
+
+
+class _StartsOff(eqx.Module):
+    # an interpolant that does not start at y0: y0 + k_0 + theta (y1 - y0)
+    t0: jax.Array
+    t1: jax.Array
+    y0: jax.Array
+    y1: jax.Array
+    k: jax.Array
+
+    def evaluate(self, t):
+        return self.y0 + self.k[0] + (t - self.t0) / (self.t1 - self.t0) * (self.y1 - self.y0)
+
+
+def test_an_interpolant_that_misses_the_steps_start_is_named():
+    with pytest.raises(ValueError, match="_StartsOff: its dense output does not meet the step's ends"):
+        chebyshev_weights(_StartsOff, 2, jnp.float64)
+
+
+def test_dense_output_rounds_at_the_scale_of_the_change_since_the_nearer_end():
+    # One Tsit5 step of a ball thrown up from 0.3 and caught 900 s later near 0.3 (peak 1e6):
+    # the step reproduces the parabola, so the dense output's increment from either end is
+    # v s - g s^2 / 2 (s the time from that end). Near the ends the form rounds at the scale of
+    # the state and of the change since the end (theta or 1 - theta times the step's change),
+    # where y0 + theta dy or diffrax's interpolation round at the peak's scale, 1e6 * 1e-16.
+    G, T = 9.8, 900.0
+    term = diffrax.ODETerm(lambda t, y, a: jnp.stack([y[1], -G + 0 * y[0]]))
+    solver = diffrax.Tsit5()
+    t0, t1, y0 = 0.0, T, jnp.array([0.3, G * T / 2 + 1e-3])
+    y1, _, dense, _, _ = solver.step(term, t0, t1, y0, None, solver.init(term, t0, t1, y0, None), made_jump=False)
+    ours = ChebyshevDense.from_stages(chebyshev_weights(solver.interpolation_cls, dense["k"].shape[0], jnp.float64),
+                                      t0, t1, y0, y1, dense["k"])
+    eps = np.finfo(np.float64).eps
+    for d in (1e-9, 1e-6, 1e-3, 0.1):
+        for end, y_end, t in ((t0, y0, t0 + d), (t1, y1, t1 - d)):
+            s = t - end  # as rounded
+            v = float(y_end[1])
+            increment = v * s - 0.5 * G * s * s
+            scale = abs(float(y_end[0])) + abs(s / T) * abs(float(ours.dy[0])) + abs(v * s)
+            assert abs(float(ours.evaluate(t)[0] - y_end[0]) - increment) <= 64 * eps * scale, (d, end)
 
 
 # a few save times per step, more than SAVE_WINDOW (16) per step, and unsorted
@@ -366,6 +420,41 @@ def test_batched_saved_states_match_free_flight_and_bounces(num_saves, order):
             np.testing.assert_allclose(sol.ys[i, k], [h[e] + v[e] * dt - 4.9 * dt * dt, v[e] - 9.8 * dt],
                                        atol=1e-8)
     assert np.all(np.asarray(sol.saved_modes) == 0)
+
+
+@pytest.mark.parametrize("engine", ["batched", "vmap"])
+def test_save_times_within_ulps_of_an_event_are_written(engine):
+    # Save times at each of the engine's own event times and its neighbours, -3 ... +3 ulps (the
+    # located time and the reported one, moved onto the guard, can differ by ulps): each is
+    # written, with the pre-event state up to the event time and the post-event state after it.
+    x0 = np.array([1.0, 0.0])
+
+    def run(ts):
+        return hj.simulate_batch(BALL, jnp.asarray(x0[None]), "flight", 0.0, 2.0, BALL_ARGS, block=1,
+                                 stepsize_controller=TIGHT, saveat=jnp.asarray(ts), engine=engine)
+
+    events = np.asarray(run(np.linspace(0.0, 2.0, 24)).event_times[0])
+    events = events[np.isfinite(events)]
+    assert len(events) == 3
+    near = []
+    for e in events:
+        below = above = e
+        for _ in range(3):
+            below, above = np.nextafter(below, -np.inf), np.nextafter(above, np.inf)
+            near += [below, above]
+        near.append(e)
+    ts = np.sort(np.concatenate([near, np.linspace(0.1, 1.9, 24 - len(near))]))
+    sol = run(ts)
+    np.testing.assert_array_equal(sol.event_times[0, :3], events)  # the same steps with these saves
+    ref = examples.bouncing_ball_closed_form(x0[0], x0[1], 9.8, 0.8, 2.0)
+    h = np.concatenate([[x0[0]], np.zeros(3)])
+    v = np.concatenate([[x0[1]], ref["post_velocities"][:3]])
+    starts = np.concatenate([[0.0], events])
+    for k, s in enumerate(ts):
+        e = np.searchsorted(events, s, side="left")  # the epoch: up to its event time, inclusive
+        dt = s - starts[e]
+        np.testing.assert_allclose(sol.ys[0, k], [h[e] + v[e] * dt - 4.9 * dt * dt, v[e] - 9.8 * dt], atol=1e-8,
+                                   err_msg=f"save {k} at {s!r}")
 
 
 def test_engine_choice_and_errors():

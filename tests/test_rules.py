@@ -28,6 +28,7 @@ from hybridjax._step.runge_kutta import (
 )
 
 EPS = float(np.finfo(np.float64).eps)
+TOL = 1e-10  # an event-time tolerance
 BALL_KERN = Kernels(examples.bouncing_ball(), {"g": 9.8, "e": 0.8}, jnp.float64)
 G = 9.8
 
@@ -405,7 +406,7 @@ def test_event_point_derivatives_by_the_implicit_function_theorem():
         fall = _FreeFall(t0, h0, jnp.asarray(0.0))
         t_star = jax.lax.stop_gradient(t0 + jnp.sqrt(2 * h0 / G))
         t_ev, y_before, grazing = R.event_point(
-            BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, fall, {"g": G, "e": 0.8}
+            BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, fall, {"g": G, "e": 0.8}, TOL
         )
         return t_ev, (y_before, grazing)
 
@@ -435,7 +436,7 @@ def test_event_point_reports_a_state_in_the_guard_when_the_dense_output_rounds_o
     v = math.sqrt(2 * G)
     above = _FreeFall(t0, h0 + 1e-14, jnp.asarray(0.0))
     t_ev, y_before, _ = R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t_star, above,
-                                      {"g": G, "e": 0.8})
+                                      {"g": G, "e": 0.8}, TOL)
     assert float(above.evaluate(t_star)[0]) > 0
     assert -1e-15 <= float(y_before[0]) <= 0.0
     np.testing.assert_allclose(float(t_ev - t_star), 1e-14 / v, atol=2 * EPS * float(t_star))  # ulps of t
@@ -450,13 +451,33 @@ def test_event_point_at_the_end_of_a_step_without_an_event_keeps_the_state_and_t
     def at_end(h0):
         fall = _FreeFall(t0, h0, jnp.asarray(0.0), 0.6)
         t_ev, y, _ = R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), jnp.asarray(0.6), fall,
-                                   {"g": G, "e": 0.8})
+                                   {"g": G, "e": 0.8}, TOL)
         return t_ev, y
 
     t_ev, y = at_end(h0)
     assert float(t_ev) == 0.6
     np.testing.assert_array_equal(y, _FreeFall(t0, h0, jnp.asarray(0.0)).evaluate(jnp.asarray(0.6)))
     assert np.all(np.isfinite(jax.jacfwd(lambda h: at_end(h)[1])(h0)))
+
+
+def test_event_point_near_tangency_moves_the_time_no_further_than_the_event_tolerance():
+    # The dense output rounds 1e-14 above the floor where the ball falls at 1e-7 (grazing): the
+    # Newton step -g / gdot would move the time by 1e-7, far past the search's accuracy; it is
+    # cut to the event-time tolerance, the state moved by tol F, the derivatives finite.
+    t0, v0 = jnp.asarray(0.5), jnp.asarray(-1e-7)
+
+    def near(h0):
+        fall = _FreeFall(t0, h0, v0)
+        return R.event_point(BALL_KERN, EPS, jnp.asarray(0), jnp.asarray(0), t0, fall, {"g": G, "e": 0.8}, TOL)
+
+    t_ev, y_before, grazing = near(jnp.asarray(1e-14))
+    assert bool(grazing)
+    np.testing.assert_allclose(float(t_ev - t0), TOL, rtol=1e-6)
+    np.testing.assert_allclose(y_before, [1e-14 + TOL * float(v0), float(v0) - TOL * G], rtol=1e-12, atol=1e-30)
+    dt, dy = jax.jacfwd(lambda h: near(h)[:2])(jnp.asarray(1e-14))
+    assert np.isfinite(float(dt)) and np.all(np.isfinite(dy))
+    # the implicit function theorem at the shifted time: dt/dh0 = -1 / (v0 - g tol)
+    np.testing.assert_allclose(float(dt), -1.0 / (float(v0) - G * TOL), rtol=1e-9)
 
 
 # ---------------------------------------------------------------------------- the jump

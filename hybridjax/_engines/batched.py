@@ -189,8 +189,7 @@ class StepEvent(NamedTuple):
 
     event: jax.Array  # the lane has an event in the step
     k: jax.Array  # the watched function (a guard if < K; a domain component: `blocks`)
-    t_star: jax.Array  # the located time
-    t_ev: jax.Array  # the same, differentiable (`event_point`)
+    t_ev: jax.Array  # the event time (`event_point`)
     y_before: jax.Array
     y_after: jax.Array
     simultaneous: jax.Array
@@ -605,7 +604,7 @@ class BatchedLoop:
         # stages inside each fusion that reads the interpolant (event_point's several
         # evaluations), a third of the run time of a batch of balls.
         interp = eqx.tree_at(lambda i: i.coeffs, interp, lax.optimization_barrier(interp.coeffs))
-        t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e)
+        t_ev, y_before, grazing = event_point(kern, self.eps, mode, k, t_star, interp, a_e, tol)
         k = kern.select(mode, k, t_ev, y_before, a_e)
         if K:
             t_r, y_r, a_r = mask_inputs(any_event & ~blocks(k, K), (t_ev, y_before, args))
@@ -614,7 +613,7 @@ class BatchedLoop:
             y_after = y_before
         target = kern.targets[jnp.clip(k, 0, max(K - 1, 0))] if K else mode
         nxt, _ = self._start_lane(t_ev, y_after, target, h_new, t1, args, after_step=True)
-        return StepEvent(event=any_event, k=k, t_star=t_star, t_ev=t_ev, y_before=y_before, y_after=y_after,
+        return StepEvent(event=any_event, k=k, t_ev=t_ev, y_before=y_before, y_after=y_after,
                          simultaneous=simultaneous, grazing=grazing, next=nxt)
 
     def mapped_step(self, mode, t, t_next, y, f0, args):
@@ -769,10 +768,10 @@ class BatchedLoop:
                          jnp.where(go, out.next.h, new.h), jnp.where(go, out.next.F, new.f0)))
                     new = self.restart_step_rule(new, go)
                 new_all = _scatter_lanes(new_all, b0, new, idx)
-                # An event lane's step ends at its event, t_star (elsewhere t_star is t_next).
+                # An event lane's step saves up to its event time (elsewhere to t_next).
                 if self.save_ts.shape[0]:
-                    t_star = jnp.where(ev, out.t_star, self.take(t_end, idx))
-                    t_end = t_star if idx is None else t_end.at[idx].set(t_star, mode="drop")
+                    t_save = jnp.where(ev, sg(out.t_ev), self.take(t_end, idx))
+                    t_end = t_save if idx is None else t_end.at[idx].set(t_save, mode="drop")
                 return new_all, rec, t_end
 
             def some_events(carry):
@@ -807,7 +806,8 @@ class BatchedLoop:
         lanes = st.exec_id
         dense = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks)  # coeffs (D+1, n, N)
         # The same, its arrays with a save-time axis before the lanes' (lanes last).
-        windowed = ChebyshevDense(t0=t, t1=t_next, y0=dense.y0[:, None, :], dy=dense.dy[:, None, :],
+        windowed = ChebyshevDense(t0=t, t1=t_next, y0=dense.y0[:, None, :], y1=dense.y1[:, None, :],
+                                  dy=dense.dy[:, None, :],
                                   coeffs=dense.coeffs[:, :, None, :])
 
         def pending(ptr):

@@ -682,9 +682,10 @@ class Loop:
         br = event_brackets(values_at, det, s_ext, tol, self.locator)
         t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)
-        t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp, args)
+        t_ev, y_before, grazing = event_point(self.kern, self.eps, mode, k, t_star, interp, args, tol)
         k = kern.select(mode, k, t_ev, y_before, args)
-        t_end = jnp.where(any_event, t_star, sg(t_next))
+        # saves up to the event time reported (t* moved onto the guard, `onto_the_guard`)
+        t_end = jnp.where(any_event, sg(t_ev), sg(t_next))
         saved = self._save(saved, active & saved_in_step(self.save_ts, sg(st.t), t_end), mode, interp, t,
                            t_next)
 

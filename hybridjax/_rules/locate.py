@@ -324,7 +324,7 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
     return lax.cond(eqxi.unvmap_any(any_event), locate, none, None)
 
 
-def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
+def event_point(kern: Kernels, eps, mode, k, t_star, interp, args, tol):
     r"""The event time and pre-event state, differentiable to every order by the implicit
     function theorem.
 
@@ -397,7 +397,9 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args):
     grazing = jnp.abs(gdot) <= jnp.cbrt(eps) * size
 
     # Within the step: where the held step has no event (t* its end, g > 0) the shift is 0.
-    w0 = jnp.minimum(onto_the_guard(g_v, gdot), sg(interp.t1) - t_v)
+    # Within the event-time tolerance: near tangency (gdot -> 0-) -g / gdot is a rounding error
+    # divided by a vanishing rate, and the time may move no further than the search's accuracy.
+    w0 = jnp.minimum(onto_the_guard(g_v, gdot), jnp.minimum(sg(interp.t1) - t_v, sg(tol)))
     p = (t_s, x_star, diff_args)
     local_c, consts = _closure_converted(local, w0, p)
     w, y_ev = _located(local_c, w0, p, consts)
