@@ -337,7 +337,8 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args, tol):
     p = (t_s, x*, args) (x* carries the dependence on the epoch's start state and parameters
     through the dense output's coefficients). The event is the root w(p) of
     G(w; p) = g(t_s + u* + w, X(w; p)): w = w0 in value (0, or `onto_the_guard`'s step of a
-    few ulps where x* rounds outside the guard), with the derivative
+    few ulps where x* rounds outside the guard, at most the event-time tolerance `tol` and the
+    step's end), with the derivative
 
         dw = -(D_p G dp) / D_w G,     D_w G = D_t g + D_x g F   (the guard's rate along the flow),
 
