@@ -192,8 +192,7 @@ def ball_bare_loop(*, rtol=1e-9, atol=1e-9, max_iters=4096):
         """The step's dense output of one component at the fraction s (`ChebyshevDense`'s form)."""
         dy = y1 - y0
         coeffs = [r[1] * dy + weighted_sum(r[2:], ks, y0) for r in cheb]
-        return lambda s: (jnp.where(s <= 0.5, y0 + s * dy, y1 - (1 - s) * dy)
-                           + (s * (1 - s)) * clenshaw(coeffs, 2 * s - 1))
+        return lambda s: y0 + s * (dy + (1 - s) * clenshaw(coeffs, 2 * s - 1))
 
     def rms(v):  # over the two components, written out: a reduction over them would not fuse
         return jnp.sqrt(0.5 * (v[0] * v[0] + v[1] * v[1]))

@@ -806,8 +806,7 @@ class BatchedLoop:
         lanes = st.exec_id
         dense = ChebyshevDense.from_stages(self.cheb, t, t_next, y, y1, ks)  # coeffs (D+1, n, N)
         # The same, its arrays with a save-time axis before the lanes' (lanes last).
-        windowed = ChebyshevDense(t0=t, t1=t_next, y0=dense.y0[:, None, :], y1=dense.y1[:, None, :],
-                                  dy=dense.dy[:, None, :],
+        windowed = ChebyshevDense(t0=t, t1=t_next, y0=dense.y0[:, None, :], dy=dense.dy[:, None, :],
                                   coeffs=dense.coeffs[:, :, None, :])
 
         def pending(ptr):

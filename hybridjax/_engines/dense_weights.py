@@ -91,12 +91,13 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     \sum_i A_{m(2+i)} k_i)$. $q = (y - y_0 - \theta\,[y(1) - y_0]) / (\theta (1 - \theta))$ is a
     polynomial (the numerator vanishes at both ends): the numerator's Chebyshev transform at
     `degree` + 1 nodes (exact for degrees <= `degree`) divided by $\theta (1 - \theta)$ as a
-    series; $y(1) = y_1$ for the solver's own step, to rounding (Dopri8's interpolant: ~1e-12;
-    `ChebyshevDense` meets $y_1$ itself). Near either end the terms are as small as the change
-    since that end, with the first two written about the nearer end (`ChebyshevDense`): a
-    Chebyshev series of $y$ itself sums terms of the size of the whole step's change, and a long
-    step's dense output would round at that scale where a guard crosses zero. Returns A as
-    nested lists, columns (y0, y1, k_1, ...) with
+    series; $y(1) = y_1$ for the solver's own step, to rounding (Dopri8's interpolant ends
+    ~1e-12 from it; the form meets $y_0 + \Delta y$, spreading that miss linearly). Near the
+    start the terms are as small as the change since it (a Chebyshev series of $y$ itself sums
+    terms of the size of the whole step's change: a long step's dense output would round at
+    that scale where a guard crosses zero early in the step); towards the end,
+    $y_0 + \theta\,\Delta y$ rounds at the scale of $|y_0|$ and $|\Delta y|$, one part in 1e16 of the
+    step's change. Returns A as nested lists, columns (y0, y1, k_1, ...) with
     $A_{m0} = -A_{m1}$, one row per degree up to $q$'s own."""
     nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
     thetas = (nodes + 1) / 2
@@ -131,22 +132,14 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
 
 
 class ChebyshevDense(eqx.Module):
-    r"""One lane's dense output on $[t_0, t_1]$,
-
-    $$y(\theta) = y_0 + \theta\,\Delta y + \theta(1-\theta)\,q(\theta)
-                 = y_1 - (1 - \theta)\,\Delta y + \theta(1-\theta)\,q(\theta),$$
-
+    r"""One lane's dense output on $[t_0, t_1]$, $y_0 + \theta\,\Delta y + \theta(1-\theta)\,q(\theta)$
     with $q$ a Chebyshev series in $x = 2\theta - 1$ (Clenshaw's recurrence; `chebyshev_weights`):
-    diffrax's interpolation, evaluated without the small matrix products that vmap turns into
-    batched dots, and meeting the step's $y_1$ exactly (Dopri8's interpolant ends ~1e-12 from
-    it; the form spreads that miss linearly). Each half of the step is written about its own
-    end, so that the rounding is at the scale of the change since that end: where a long step's
-    crossing lies near its end, $y_0 + \theta\,\Delta y$ would cancel to the step's whole change."""
+    the same polynomial as diffrax's interpolation, evaluated without the small matrix products
+    that vmap turns into batched dots."""
 
     t0: jax.Array
     t1: jax.Array
     y0: jax.Array  # (n,)
-    y1: jax.Array  # (n,)
     dy: jax.Array  # (n,), y1 - y0
     coeffs: jax.Array  # (degree + 1, n), q's
 
@@ -158,20 +151,14 @@ class ChebyshevDense(eqx.Module):
         must not read 2 as 1.999... and truncate to 1)."""
         dy = y1 - y0
         rows = [r[1] * dy + weighted_sum(r[2:], list(ks), y0) for r in A]
-        return cls(t0=t0, t1=t1, y0=y0, y1=y1, dy=dy, coeffs=jnp.stack(rows))
+        return cls(t0=t0, t1=t1, y0=y0, dy=dy, coeffs=jnp.stack(rows))
 
     def evaluate(self, t):
         span = self.t1 - self.t0
-        safe = jnp.where(span == 0, 1.0, span)
-        theta = jnp.where(span == 0, 0.0, (t - self.t0) / safe)
-        # 1 - theta from the times themselves: 1 - theta would carry theta's rounding (an ulp of
-        # 1) into (1 - theta) dy, the step's whole change times 1e-16, where the form is meant
-        # to round at the scale of the change since t1.
-        omega = jnp.where(span == 0, 1.0, (self.t1 - t) / safe)
+        theta = jnp.where(span == 0, 0.0, (t - self.t0) / jnp.where(span == 0, 1.0, span))
         x = 2 * theta - 1
         b1, b2 = jnp.zeros_like(self.coeffs[0]), jnp.zeros_like(self.coeffs[0])
         for c in self.coeffs[:0:-1]:
             b1, b2 = 2 * x * b1 - b2 + c, b1
         q = x * b1 - b2 + self.coeffs[0]
-        about_the_end = jnp.where(theta <= 0.5, self.y0 + theta * self.dy, self.y1 - omega * self.dy)
-        return about_the_end + (theta * omega) * q
+        return self.y0 + theta * self.dy + (theta * (1 - theta)) * q
