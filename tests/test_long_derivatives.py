@@ -17,7 +17,10 @@ import hybridjax as hj
 
 # Errors per event within BOUND * TOL * k * max(1, |d t_k / d p|).
 BOUND = 10.0
-CASES = [(name, engine) for name in PROBLEMS for engine in ("simulate", "simulate_batch")]
+# The batched engine on the ball in every run; on the other problems with the costly cases
+# (its gradients against the per-execution engine: test_batched.py).
+CASES = [(name, "simulate") for name in PROBLEMS] + [
+    pytest.param(name, "simulate_batch", marks=() if name == "ball" else pytest.mark.costly) for name in PROBLEMS]
 
 
 def _check(name: str, J: np.ndarray, label: str) -> None:

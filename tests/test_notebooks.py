@@ -13,8 +13,16 @@ def test_there_are_notebooks():
     assert len(NOTEBOOKS) >= 3
 
 
+# The trajectory-optimisation notebook (shooting from three guesses, hybrid iLQR) with the costly
+# cases: its calls are the tests' own in test_shooting.py and test_ilqr.py.
+COSTLY = {"05_trajectory_optimisation"}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
+@pytest.mark.parametrize(
+    "path", [pytest.param(p, marks=pytest.mark.costly) if p.stem in COSTLY else p for p in NOTEBOOKS],
+    ids=lambda p: p.stem,
+)
 def test_notebook_executes(path):
     nb = nbformat.read(path, as_version=4)
     NotebookClient(nb, timeout=600, kernel_name="python3",

@@ -44,7 +44,7 @@ def test_multiplier_and_gait_derivatives_of_the_rimless_wheel():
     np.testing.assert_allclose(J, exact, rtol=0, atol=1e-7)
 
 
-@pytest.mark.slow
+@pytest.mark.costly  # the orbit's forward mode; its reverse mode: the test above
 def test_forward_mode_through_the_orbit():
     p = jnp.array([ALPHA, GAMMA])
     J = np.asarray(jax.jit(jax.jacfwd(orbit_outputs))(p))

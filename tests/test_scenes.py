@@ -212,6 +212,7 @@ def test_rimless_wheel_gait_by_hand():
     np.testing.assert_allclose(mult[1:], 0.0, atol=1e-3)
 
 
+@pytest.mark.costly  # periodic_orbit on the example wheel: test_periodic_gradients.py, test_saltation.py
 def test_rimless_wheel_gait_by_periodic_orbit():
     system, args, step, ref = wheel()
     orbit = hj.periodic_orbit(system, step[0], ref["state"] * 1.02, args, max_epochs=4)
@@ -408,7 +409,8 @@ def _triangle_system():
     return hj.contact_system(examples.polygon_particle(3), ["free"], {"g": jnp.asarray(G), "r": jnp.asarray(1.0)})
 
 
-@pytest.mark.parametrize("name", ["triangle", "wedge", "wheel"])
+# the triangle (three faces, the largest build) with the costly cases
+@pytest.mark.parametrize("name", [pytest.param("triangle", marks=pytest.mark.costly), "wedge", "wheel"])
 def test_mask_evaluation_equals_the_modes_own_functions(name):
     """The one masked evaluation of every mode (`ContactEvaluation`) against each mode's and
     transition's own function, as the engines see them (`Kernels` with and without it): flows,

@@ -433,7 +433,7 @@ def _radius_squared_closed(k):
     return (a * w / jnp.sqrt(w * w + beta)) ** 2
 
 
-@pytest.mark.slow
+@pytest.mark.costly  # gradients of multipliers through periodic_orbit: test_periodic_gradients.py
 def test_gait_push_off_gain_minimising_the_spectral_radius():
     """Energy from theta+ = gamma - alpha to theta- = gamma + alpha: omega-^2 = omega+^2 + beta,
     beta = 4 sin(alpha) sin(gamma); the return map omega+' = (c + k) omega- - k omega_ref has the
