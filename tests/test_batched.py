@@ -263,7 +263,7 @@ def test_batched_modes_of_different_dimensions_per_execution():
     _assert_same_executions(got, want)
 
 
-def _final_heights(engine, adjoint=diffrax.RecursiveCheckpointAdjoint()):
+def _final_heights(engine, adjoint):
     def f(x0):
         return hj.simulate_batch(BALL, x0, "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT, block=1,
                                  engine=engine, adjoint=adjoint).final_state[:, 0]

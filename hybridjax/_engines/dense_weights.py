@@ -120,8 +120,9 @@ def chebyshev_weights(interpolation_cls, num_stages: int, dtype, degree: int = C
     A = np.zeros((C.shape[0] - 2, C.shape[1]))
     for j in range(C.shape[1]):
         q, rem = np.polynomial.chebyshev.chebdiv(C[:, j], [0.125, 0.0, -0.125])  # zero rows trimmed
-        # The interpolant must meet y0 at theta = 0 and y(1) at 1: else the division leaves a
-        # remainder, and the series would not be the interpolant's.
+        # L vanishes at theta = 1 by construction (the interpolant's own y(1) is subtracted), at
+        # theta = 0 only if the interpolant starts at y0: else the division leaves a remainder,
+        # and the series would not be the interpolant's.
         if np.max(np.abs(rem)) > 1e3 * np.finfo(dtype).eps * max(np.abs(C[:, j]).max(), 1.0):
             raise ValueError(f"{interpolation_cls.__name__}: its dense output does not meet the step's ends "
                              f"(remainder {np.max(np.abs(rem)):.1e} in column {j})")
