@@ -316,6 +316,25 @@ def test_event_brackets_turn_a_dip_into_a_bracket():
     assert float(ev.t_star) == pytest.approx(1.4, abs=1e-12) and int(ev.index) == 0
 
 
+def test_a_dip_that_stays_above_zero_leaves_the_crossing_after_it():
+    # g = u^2 + 0.01 - u^3, u = x - 1.5, on the samples 0, 1, 2, 3: a dip candidate on [1, 2]
+    # whose minimum (0.01 at 1.5) stays above zero, then a crossing between 2 and 3. The first
+    # event is the crossing, at brentq's root of g.
+    from scipy.optimize import brentq
+
+    def g(x):
+        u = x - 1.5
+        return u * u + 0.01 - u**3
+
+    det = R.Detection(jnp.array([True]), jnp.array([2]), jnp.array([True]), jnp.array([1]), jnp.array([1.5]))
+    s_ext = jnp.array([0.0, 1.0, 2.0, 3.0])
+    br = R.event_brackets(lambda x: jnp.stack([g(x)]), det, s_ext, 1e-12)
+    assert bool(br.has[0]) and float(br.a[0]) == 2.0 and float(br.b[0]) == 3.0
+    ev = R.first_event(lambda x: jnp.stack([g(x)]), br, 1e-12, jnp.asarray(3.0))
+    r = brentq(g, 2.0, 3.0, xtol=1e-15)
+    assert 0.0 <= float(ev.t_star) - r <= 1e-12 and g(float(ev.t_star)) <= 0.0
+
+
 def test_the_minimum_search_runs_only_for_dip_candidates():
     # Guard 0 dips below zero between samples 1 and 2 (found at the first Newton point); guard 1,
     # 5 - x, has no candidate. Its search would halve [1, 2] to 1e-12 (~32 iterations); with the
