@@ -119,14 +119,20 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
     def value_and_slope(x):
         return jax.jvp(f, (x,), (one,))
 
+    def evaluate(x):
+        """f, f' and f'' at x from one nested JVP, carried into the next iteration, where
+        every output reads them (evaluated inside the update, XLA copies the evaluation into
+        each output's fusion)."""
+        (fx, d1), (_, d2) = jax.jvp(value_and_slope, (x,), (one,))
+        return jnp.stack([fx, d1, d2])
+
     def cond(c):
-        a, b, _, step, f_best, _, i = c
+        a, b, _, step, f_best, _, i, _ = c
         return (f_best >= 0) & (b - a > tol) & (jnp.abs(step) > 0.5 * tol) & (i < max_iter)
 
     def body(c):
-        a, b, x, _, f_best, x_best, i = c
-        # f, f' and f'' from one nested JVP (f' and f'' are its tangents).
-        (fx, d1), (_, d2) = jax.jvp(value_and_slope, (x,), (one,))
+        a, b, x, _, f_best, x_best, i, ev = c
+        fx, d1, d2 = ev[0], ev[1], ev[2]
         better = fx < f_best
         f_best, x_best = jnp.where(better, fx, f_best), jnp.where(better, x, x_best)
         a = jnp.where(d1 < 0, x, a)
@@ -135,18 +141,20 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
         ok = (d2 > 0) & jnp.isfinite(xn) & (xn > a) & (xn < b)
         xn = jnp.where(ok, xn, 0.5 * (a + b))
         step = jnp.where(d1 == 0, 0.0, xn - x)
-        return a, b, xn, step, f_best, x_best, i + 1
+        return a, b, xn, step, f_best, x_best, i + 1, evaluate(xn)
 
+    x_init = jnp.clip(x0, a, b)
     init = (
         a,
         b,
-        jnp.clip(x0, a, b),
+        x_init,
         jnp.asarray(jnp.inf, x0.dtype),
         jnp.asarray(jnp.inf, x0.dtype),
         x0,
         jnp.array(0),
+        evaluate(x_init),
     )
-    _, _, _, _, f_best, x_best, _ = lax.while_loop(cond, body, init)
+    _, _, _, _, f_best, x_best, _, _ = lax.while_loop(cond, body, init)
     return x_best, f_best
 
 
@@ -231,6 +239,10 @@ def event_brackets(values_at: Callable, det: Detection, s_ext, tol,
         # while loop runs until its last element is done).
         a_d = s_ext[i_d]
         b_d = jnp.where(suspect, s_ext[i_d + 1], a_d)
+        if has.shape[0] == 1:
+            # One watched function: its search alone. A vmap over one function would batch the
+            # search's loop ([1]-shaped values), a larger program for the same work.
+            return tuple(v[None] for v in lowest(0, a_d[0], b_d[0], x0_d[0]))
         return jax.vmap(lowest)(jnp.arange(has.shape[0]), a_d, b_d, x0_d)
 
     x_min, g_min = lax.cond(
@@ -305,8 +317,8 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         return lax.while_loop(more, next_root, (jnp.array(0), inf, jnp.full((n,), inf)))[2]
 
     def locate(_):
-        if n == 1:  # one watched function: its search, with no loop around it
-            tk = jnp.where(has, jax.vmap(root)(jnp.arange(n), a, b), jnp.inf)
+        if n == 1:  # one watched function: its search, with no loop or batch of one around it
+            tk = jnp.where(has, root(0, a[0], b[0])[None], jnp.inf)
         else:
             tk = roots_in_order()
         first = jnp.argmin(tk)
