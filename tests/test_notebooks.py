@@ -13,9 +13,13 @@ def test_there_are_notebooks():
     assert len(NOTEBOOKS) >= 3
 
 
-# The trajectory-optimisation notebook (shooting from three guesses, hybrid iLQR) with the costly
-# cases: its calls are the tests' own in test_shooting.py and test_ilqr.py.
-COSTLY = {"05_trajectory_optimisation"}
+# Notebooks with the costly cases, each with its calls tested in CI elsewhere:
+# - 02 (gradients, `saltation_matrix`, `variational_jacobian`, the rimless wheel's `periodic_orbit`):
+#   test_gradients.py, test_saltation.py, test_long_derivatives.py, test_periodic_gradients.py;
+# - 05 (shooting from three guesses, hybrid iLQR): test_shooting.py and test_ilqr.py;
+# - 06 (the wedge particle's batch, the rod, `animate_scene`): test_scenes.py, test_scene_animation.py;
+# - 07 (`SaltedKalmanFilter`, `sobol_indices`, `morris_effects`): test_kalman.py, test_sensitivity.py.
+COSTLY = {"02_gradients_and_saltation", "05_trajectory_optimisation", "06_scenes", "07_estimation_and_sensitivity"}
 
 
 @pytest.mark.slow
