@@ -769,6 +769,72 @@ def _plot_gpu_throughput(res: dict) -> str:
 PAGES["gpu_throughput"] = gpu_throughput
 
 
+def cpu_profile(res: dict) -> list[str]:
+    out = _page("cpu_profile", "Where the time goes, one core", res, "cpu_profile.py",
+                "Problems A (the ball), C (thermostat) and B (Van der Pol relay), Tsit5, rtol = atol = 1e-9, on one "
+                f"JAX CPU device, each way timed (best of {res['repeat']} runs) and traced with `jax.profiler` "
+                f"({res['traced']} runs). XLA:CPU runs a compiled program as a sequence of *thunks*, one per fusion, "
+                "gather, scatter or copy; each traced thunk is matched to its instruction in the compiled program "
+                "and, through the program's source stack frames, to the part of the execution semantics hybridjax "
+                "computes there (the innermost function of its stack that names one). Instructions without source "
+                "frames, the loops' copies of their state, are *copies and loop control*. The thunks run on two "
+                "threads, so thread time can exceed the run's wall time (and time outside the thunks, the loops' control on the host, is not in it): read the parts as shares. Tracing adds a "
+                "cost to every thunk: a run of many small thunks traces several times slower (compare the run and "
+                "the traced run), and in it the parts made of many small thunks are overstated (compare the "
+                "parts' thunks). The baselines are not hybridjax code: only their totals and copies are shown.")
+    for prob, pr in res["problems"].items():
+        out += _cpu_profile_problem(prob, pr)
+    progs = res.get("programs")
+    if progs:
+        calls = list(progs)
+        out += ["## The first call's program, by part", "",
+                "The optimised HLO of one execution of the ball (g = 9.8, e = 0.8, x0 = (1, 0), T = 3, default "
+                "tolerances), the programs of the [first-call page](first_call.md): instructions by part, "
+                "attributed as the thunks above (an instruction inside a fusion counts).", ""]
+        names = list(dict.fromkeys(p for c in calls for p in progs[c]["parts"]))
+        body = [[p] + [f"{progs[c]['parts'].get(p, 0):,} ({100 * progs[c]['parts'].get(p, 0) / progs[c]['total']:.0f}%)"
+                       for c in calls] for p in names]
+        body.append(["**total**"] + [f"**{progs[c]['total']:,}**" for c in calls])
+        out += _table(["part", *calls], body)
+    return out
+
+
+def _cpu_profile_problem(prob: str, pr: dict) -> list[str]:
+    ways = pr["ways"]
+    out = [f"## {prob}, N = {pr['n']:,}", ""]
+    body = []
+    for name, w in ways.items():
+        per_event = f"{w['rare_s'] / w['events'] * 1e6:.2f}" if w.get("events") else "-"
+        body.append([name, f"{w['run_s'] * 1e3:.1f}", f"{w['traced_run_s'] * 1e3:.1f}",
+                     f"{w['thread_s'] * 1e3:.1f}", f"{w['thunks']:,}",
+                     f"{w['thread_s'] / w['thunks'] * 1e6:.2f}", f"{w['steps']:,}" if "steps" in w else "-",
+                     f"{w['events']:,}" if "events" in w else "-", per_event])
+    out += _table(["way", "run (ms)", "traced run (ms)", "thread time (ms)", "thunks per run",
+                   "thread time per thunk (us)", "steps", "events", "rare work per event (us)"], body)
+    out += ["*Rare work*: everything but the step (event location, the epoch-start test, resets, the record, "
+            "Zeno detection, the gathering of blocks of lanes), in thread time per event of the run.", ""]
+    hj = [n for n, w in ways.items() if "steps" in w]
+    parts = list(dict.fromkeys(p for n in hj for p in ways[n]["parts"]))
+    body = [[p] + [f"{ways[n]['parts'][p]['s'] * 1e3:.1f} ({100 * ways[n]['parts'][p]['s'] / ways[n]['thread_s']:.0f}%, "
+                   f"{ways[n]['parts'][p]['thunks']:,})" if p in ways[n]["parts"] else "-" for n in hj]
+            for p in parts]
+    out += ["Thread time in ms per run as traced (share of the way's, thunks per run):", ""]
+    out += _table(["part", *hj], body)
+    for n in hj:
+        w = ways[n]
+        top = next(iter(w["parts"]))
+        out.append(f"- {n}: the rare work is {100 * w['rare_s'] / w['thread_s']:.0f}% of the thread time, at "
+                   f"{w['rare_s'] / w['events'] * 1e6:.2f} us per event ({w['events'] / w['steps']:.2f} events "
+                   f"per step); the largest part is {top} ({100 * w['parts'][top]['s'] / w['thread_s']:.0f}%); "
+                   f"traced, the run takes {w['traced_run_s'] / w['run_s']:.1f}x as long.")
+    copies = [(n, w["parts"].get("copies and loop control", {}).get("s", 0.0) / w["thread_s"]) for n, w in ways.items()]
+    out.append("- Copies and loop control: " + ", ".join(f"{n} {100 * c:.0f}%" for n, c in copies) + ".")
+    return out + [""]
+
+
+PAGES["cpu_profile"] = cpu_profile
+
+
 def main():
     DOCS.mkdir(parents=True, exist_ok=True)
     for name, page in PAGES.items():
