@@ -13,13 +13,13 @@ innermost function of its source stack frames (the program's own stack-frame tab
 a part of the semantics (`PARTS`): the solver's step, the guard samples, the root search, the
 epoch-start test, the gathering of a block of lanes, and so on. Instructions without source
 frames (the loops' copies of their state; in the program, also the fusions' parameters and
-constants) are *copies and loop control*. The
-thunks run on two threads (XLA's intra-op pool), so thread time can exceed the run's wall time:
-the parts are compared as shares of thread time. Tracing adds a cost to every thunk (a run of
-many small thunks traces several times slower), so the traced run is timed too, and each part
-comes with its thunks: a part of many small thunks is overstated. Per way, also the thunks per run and their
-mean thread time, and the steps and events of the run (hybridjax's own counts), from which the
-thread time of the event phase per event.
+constants) are *copies and loop control*. The thunks run on two threads (XLA's intra-op pool),
+so thread time can exceed the run's wall time: the parts are compared as shares of thread time.
+Tracing adds a cost to every thunk (a run of many small thunks traces several times slower),
+so the traced run is timed too, and each part comes with its thunks: a part of many small
+thunks is overstated. Per way, also the thunks per run and their mean thread time, and the
+steps and events of the run (hybridjax's own counts), from which the thread time of the rare
+work (all but the step) per event.
 
 The same attribution counts the instructions of the ball's first-call programs (one
 execution, `jax.jit(simulate)` and `jax.jit(jax.grad(...))`, as on the first-call page): the
@@ -201,16 +201,14 @@ def program_parts(fn, *args) -> dict:
     instruction given to a part as the thunks are (`part_of`), and the total."""
     chains, _ = frames_of(fn.lower(*args).compile().as_text())
     check_frames(chains, "simulate")
-    count = collections.Counter("without source frames (fusions' parameters and constants, tuples, copies)" if c is None
-                                else part_of(c) for c in chains.values())
+    none = "without source frames (fusions' parameters and constants, tuples, copies)"
+    count = collections.Counter(none if c is None else part_of(c) for c in chains.values())
     return dict(total=sum(count.values()), parts=dict(count.most_common()))
 
 
 def first_call_programs() -> dict:
     """The programs of one execution of the ball (g = 9.8, e = 0.8, x0 = (1, 0), T = 3, default
     tolerances: the first-call page's forward and reverse calls) by part (`program_parts`)."""
-    import hybridjax as hj
-
     system, args, x0 = hj.examples.bouncing_ball(), dict(g=9.8, e=0.8), jnp.array([1.0, 0.0])
 
     def final(x, a):
