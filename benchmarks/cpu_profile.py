@@ -77,7 +77,7 @@ STAGES = (
     ("epoch-start test", ("start_stage",)),
     ("step: other (state updates)", ("step_stage",)),
     ("loop body: choice of phase, selections", ("body", "due")),
-    ("the loop around the body (equinox's checkpointing)", ("Loop.run", "BatchedLoop.run", "BatchedLoop._run")),
+    ("the loop around the body (its condition, equinox's checkpointing)", ("Loop.run", "BatchedLoop.run", "BatchedLoop._run")),
 )
 
 
