@@ -813,14 +813,14 @@ def _cpu_profile_problem(prob: str, pr: dict) -> list[str]:
                    "thread time per thunk (us)", "steps", "events", "rare work per event (us)"], body)
     out += ["*Rare work*: everything but the step (event location, the epoch-start test, resets, the record, "
             "Zeno detection, the gathering of blocks of lanes), in thread time per event of the run.", ""]
-    hj = [n for n, w in ways.items() if "steps" in w]
-    parts = list(dict.fromkeys(p for n in hj for p in ways[n]["parts"]))
+    engines = [n for n, w in ways.items() if "steps" in w]  # hybridjax's (the baselines have no parts)
+    parts = list(dict.fromkeys(p for n in engines for p in ways[n]["parts"]))
     body = [[p] + [f"{ways[n]['parts'][p]['s'] * 1e3:.1f} ({100 * ways[n]['parts'][p]['s'] / ways[n]['thread_s']:.0f}%, "
-                   f"{ways[n]['parts'][p]['thunks']:,})" if p in ways[n]["parts"] else "-" for n in hj]
+                   f"{ways[n]['parts'][p]['thunks']:,})" if p in ways[n]["parts"] else "-" for n in engines]
             for p in parts]
     out += ["Thread time in ms per run as traced (share of the way's, thunks per run):", ""]
-    out += _table(["part", *hj], body)
-    for n in hj:
+    out += _table(["part", *engines], body)
+    for n in engines:
         w = ways[n]
         top = next(iter(w["parts"]))
         out.append(f"- {n}: the rare work is {100 * w['rare_s'] / w['thread_s']:.0f}% of the thread time, at "
