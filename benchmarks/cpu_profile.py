@@ -44,6 +44,7 @@ import numpy as np
 import problems as P
 from _baselines import ball_bare_loop, diffrax_lockstep
 from _common import machine_info, write_json
+from first_call import _problem
 from work_precision import runner, with_constants
 
 import hybridjax as hj
@@ -207,14 +208,14 @@ def program_parts(fn, *args) -> dict:
 
 
 def first_call_programs() -> dict:
-    """The programs of one execution of the ball (g = 9.8, e = 0.8, x0 = (1, 0), T = 3, default
-    tolerances: the first-call page's forward and reverse calls) by part (`program_parts`)."""
-    system, args, x0 = hj.examples.bouncing_ball(), dict(g=9.8, e=0.8), jnp.array([1.0, 0.0])
+    """The programs of one execution of the ball, the first-call page's forward and reverse calls
+    on its problem (`first_call._problem`), by part (`program_parts`)."""
+    system, x0, mode0, t1, p, _ = _problem("ball")
+    x0, args = jnp.asarray(x0, jnp.float64), {k: jnp.asarray(v, jnp.float64) for k, v in p.items()}
 
     def final(x, a):
-        return hj.simulate(system, x, "flight", 0.0, 3.0, a).final_state
+        return hj.simulate(system, x, mode0, 0.0, t1, a).final_state
 
-    args = {k: jnp.asarray(v) for k, v in args.items()}
     return {"forward": program_parts(jax.jit(final), x0, args),
             "reverse": program_parts(jax.jit(jax.grad(lambda x, a: final(x, a)[0])), x0, args)}
 
@@ -262,9 +263,9 @@ def main():
         for name, r in out_p["ways"].items():
             if "steps" in r:
                 r["rare_s"] = sum(r["parts"].get(p, {}).get("s", 0.0) for p in RARE)
+            counts = f", {r['steps']:,} steps, {r['events']:,} events" if "steps" in r else ""
             print(f"{prob.name}, {name}: run {r['run_s'] * 1e3:.1f} ms (traced {r['traced_run_s'] * 1e3:.1f}), "
-                  f"thread time {r['thread_s'] * 1e3:.1f} ms, {r['thunks']:,} thunks" + (f", {r['steps']:,} steps, {r['events']:,} events" if "steps" in r
-                                               else ""))
+                  f"thread time {r['thread_s'] * 1e3:.1f} ms, {r['thunks']:,} thunks{counts}")
             for part, v in r["parts"].items():
                 print(f"   {v['s'] * 1e3:8.2f} ms {100 * v['s'] / r['thread_s']:5.1f}%  {v['thunks']:7,} thunks  {part}")
     res["programs"] = first_call_programs()
