@@ -292,6 +292,49 @@ def test_root_bracket_closes_in_a_few_newton_iterations_on_a_million_roots():
     assert np.all((x - r <= tol) & (x - r >= -4e-16 * r))
 
 
+def _hermite_start(f, a, b):
+    (fa, fb), (da, db) = jax.vmap(lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),)))(jnp.stack([a, b]))
+    return R.hermite_root(a, b, fa, fb, da, db)
+
+
+def test_hermite_start_is_the_root_of_a_cubic():
+    # The cubic Hermite interpolant of a cubic is the cubic itself: its root, found by Newton
+    # steps from the regula-falsi point, is the function's root r (by construction).
+    n = 100_000
+    rng = np.random.default_rng(1)
+    r, c, d = rng.uniform(0.2, 3.0, n), rng.uniform(-1.0, 1.0, n), rng.uniform(-1.0, 1.0, n)
+    a, b = r - rng.uniform(0.01, 0.5, n), r + rng.uniform(0.01, 0.5, n)
+
+    def one(r, c, d, a, b):
+        return _hermite_start(lambda x: (r - x) * (1.0 + 0.3 * c * (x - r) + 0.2 * d * (x - r) ** 2), a, b)
+
+    err = np.abs(np.asarray(jax.jit(jax.vmap(one))(r, c, d, a, b)) - r) / (b - a)
+    assert np.median(err) <= 1e-15 and np.quantile(err, 0.99) <= 1e-9 and err.max() <= 1e-7
+
+
+def test_a_falling_balls_root_closes_in_one_iteration():
+    # A height h0 + v t - g t^2 / 2 (the ball's guard along its exact flow) is its own Hermite
+    # interpolant: on a bracket where it falls, the search starts at the landing time and its
+    # first probe closes the bracket.
+    n = 10_000
+    rng = np.random.default_rng(2)
+    h0, v = rng.uniform(0.1, 2.0, n), rng.uniform(-3.0, 3.0, n)
+    land = (v + np.sqrt(v * v + 2 * 9.8 * h0)) / 9.8
+    fall = land - np.maximum(v / 9.8, 0.0)  # from the apex (or t = 0) to the landing
+    a, b = land - fall * rng.uniform(0.01, 0.25, n), land + fall * rng.uniform(0.01, 0.25, n)
+
+    def one(h0, v, a, b):
+        def f(t):
+            return h0 + v * t - 4.9 * t * t
+
+        tol = 1e-12
+        return R.root_bracket(f, a, b, tol)[2], R.locate_root(f, a, b, tol)
+
+    iterations, t = map(np.asarray, jax.jit(jax.vmap(one))(h0, v, a, b))
+    assert iterations.max() == 1
+    assert np.abs(t - land).max() <= 1e-12
+
+
 def test_locate_minimum():
     x, f = R.locate_minimum(
         lambda x: (x - 0.3) ** 2 + 0.1, jnp.asarray(0.0), jnp.asarray(1.0), jnp.asarray(0.5), 1e-12

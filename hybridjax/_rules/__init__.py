@@ -16,9 +16,9 @@ functions and tests):
 - a step: `nonfinite_step`, `step_collapsed`, `step_stops`;
 - detection on a step's dense output: `crossing`, `dip_interval`, `needs_location`,
   `first_crossings`, `dip_candidates`, `dip_filter`;
-- location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`; the guards
-  reached at one instant, `simultaneous_set`, and the simultaneity rule,
-  `resolve_simultaneous`), `event_point` (the implicit-function event time; its state in
+- location: `event_brackets` (`locate_minimum`), `first_event` (`locate_root`, started at
+  `hermite_root`; the guards reached at one instant, `simultaneous_set`, and the simultaneity
+  rule, `resolve_simultaneous`), `event_point` (the implicit-function event time; its state in
   the guard, `onto_the_guard`);
 - the jump: `blocks`, `jump_outcome`, `push_recent`, `zeno_completion`;
 - saving: `saved_in_step`;
@@ -58,6 +58,7 @@ from .jump import zeno_completion as zeno_completion
 from .locate import event_brackets as event_brackets
 from .locate import event_point as event_point
 from .locate import first_event as first_event
+from .locate import hermite_root as hermite_root
 from .locate import locate_minimum as locate_minimum
 from .locate import locate_root as locate_root
 from .locate import onto_the_guard as onto_the_guard

@@ -27,9 +27,10 @@ sg = lax.stop_gradient
 def locate_root(f, a, b, tol, max_iter: int = 64):
     """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
 
-    Newton's method with the derivative of f (forward-mode AD) from the regula-falsi point,
-    falling back to bisection when a Newton step is not at most half the step before last or
-    leaves the bracket by more than `tol` (Numerical Recipes' rtsafe; a step that lands within
+    Newton's method with the derivative of f (forward-mode AD) from the root of the cubic
+    Hermite interpolant of f's values and slopes at a and b (`hermite_root`), falling back to
+    bisection when a Newton step is not at most half the step before last or leaves the
+    bracket by more than `tol` (Numerical Recipes' rtsafe; a step that lands within
     `tol` outside it is clamped to its end, where the next probe closes it). Each iterate x_k
     is followed by a probe at x_k + delta_k if f(x_k) > 0, else at x_k - delta_k (towards the root), delta_k =
     2 |x_k - x_{k-1}| clipped to [max(tol/1000, 4 ulp), tol/2]: once Newton converges
@@ -61,13 +62,11 @@ def root_bracket(f, a, b, tol, max_iter: int = 64):
     """`locate_root`'s bracket search: `(a, b, iterations)`, the bracket narrower than `tol`
     (or after `max_iter` iterations) and the iterations it took."""
     a, b, tol = lax.stop_gradient((a, b, tol))
-    # Each point its own evaluation: `jax.vmap(f)` over a few points makes the interpolant's
-    # small matrix product a batched one, 1.5x slower for one execution and no faster for many.
-    # `lax.map` evaluates them one after the other from one copy of f in the program.
-    fa, fb = lax.map(f, jnp.stack([a, b]))
-    denom = fa - fb
-    x0 = jnp.where(denom > 0, a + (b - a) * fa / jnp.where(denom > 0, denom, 1.0), 0.5 * (a + b))
-    x0 = jnp.clip(x0, a, b)
+    # Value and slope at each end, each point its own evaluation: `jax.vmap(f)` over a few points
+    # makes the interpolant's small matrix product a batched one, 1.5x slower for one execution
+    # and no faster for many. `lax.map` evaluates them one after the other from one copy of f.
+    (fa, fb), (da, db) = lax.map(lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),)), jnp.stack([a, b]))
+    x0 = hermite_root(a, b, fa, fb, da, db)
 
     def cond(c):
         a, b, *_, i = c
@@ -103,6 +102,43 @@ def root_bracket(f, a, b, tol, max_iter: int = 64):
 
     a, b, *_, i = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
     return a, b, i
+
+
+def hermite_root(a, b, fa, fb, da, db, newton_steps: int = 4):
+    r"""A starting point for the root search on [a, b], f(a) > 0 >= f(b): the root of the cubic
+    Hermite interpolant of f from its values and slopes at the ends,
+
+        p(s) = (2s^3 - 3s^2 + 1) f_a + (s^3 - 2s^2 + s) L f'_a + (3s^2 - 2s^3) f_b + (s^3 - s^2) L f'_b,
+
+    L = b - a, x = a + L s, found by `newton_steps` Newton steps on p from the regula-falsi
+    point s_0 = f_a / (f_a - f_b), kept inside the bracket [s_lo, s_hi] of p's sign change
+    (p(0) = f_a > 0 >= f_b = p(1)), bisecting it where a step would leave it. Its error is
+    O(L^4 f^(4)) where the regula-falsi point's is O(L^2 f''): the search's Newton iteration
+    starts two orders closer. Where the steps end farther from zero than s_0 (|p(s)| > |p(s_0)|,
+    or a non-finite value), s_0 is kept. No evaluation of f: arithmetic on the four numbers."""
+    L = b - a
+    denom = fa - fb
+    s0 = jnp.clip(jnp.where(denom > 0, fa / jnp.where(denom > 0, denom, 1.0), 0.5), 0.0, 1.0)
+    ta, tb = L * da, L * db
+
+    def p_dp(s):
+        s2 = s * s
+        p = ((2 * s2 * s - 3 * s2 + 1) * fa + (s2 * s - 2 * s2 + s) * ta + (3 * s2 - 2 * s2 * s) * fb
+             + (s2 * s - s2) * tb)
+        dp = (6 * s2 - 6 * s) * (fa - fb) + (3 * s2 - 4 * s + 1) * ta + (3 * s2 - 2 * s) * tb
+        return p, dp
+
+    s, lo, hi = s0, jnp.zeros_like(s0), jnp.ones_like(s0)
+    p0 = None
+    for _ in range(newton_steps):
+        p, dp = p_dp(s)
+        p0 = p if p0 is None else p0
+        lo, hi = jnp.where(p > 0, s, lo), jnp.where(p <= 0, s, hi)
+        sn = s - p / jnp.where(dp != 0, dp, 1.0)
+        s = jnp.where((sn >= lo) & (sn <= hi), sn, 0.5 * (lo + hi))
+    p1 = p_dp(s)[0]
+    s = jnp.where(jnp.isfinite(p1) & (jnp.abs(p1) <= jnp.abs(p0)), s, s0)
+    return jnp.clip(a + L * s, a, b)
 
 
 def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
@@ -187,11 +223,12 @@ class AbstractEventLocator(eqx.Module):
 class BracketedNewton(AbstractEventLocator):
     r"""The default locator: Newton's method kept inside a shrinking bracket.
 
-    `root`: Newton with the derivative of f by forward-mode AD, from the regula-falsi point,
-    bisecting where a Newton step leaves the bracket or does not halve the step before last
-    (Numerical Recipes' `rtsafe`; W. H. Press et al., *Numerical Recipes*, 3rd ed., Sec. 9.4),
-    each iterate followed by a probe towards the root so that the bracket closes once Newton
-    converges, then one Newton step from the right end put a few ulps past the root
+    `root`: Newton with the derivative of f by forward-mode AD, from the root of the cubic
+    Hermite interpolant of the bracket's ends (`hermite_root`), bisecting where a Newton step
+    leaves the bracket or does not halve the step before last (Numerical Recipes' `rtsafe`;
+    W. H. Press et al., *Numerical Recipes*, 3rd ed., Sec. 9.4), each iterate followed by a
+    probe towards the root so that the bracket closes once Newton converges, then one Newton
+    step from the right end put a few ulps past the root
     (`locate_root`). `minimum`: Newton on f' (f'' by nested forward-mode AD) inside the
     bracket of f' changing sign, stopping at the first f < 0 (`locate_minimum`).
     `max_iter` and `max_iter_minimum` bound the iterations of each.
@@ -317,10 +354,13 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         return lax.while_loop(more, next_root, (jnp.array(0), inf, jnp.full((n,), inf)))[2]
 
     def locate(_):
-        if n == 1:  # one watched function: its search, with no loop or batch of one around it
-            tk = jnp.where(has, root(0, a[0], b[0])[None], jnp.inf)
-        else:
-            tk = roots_in_order()
+        if n == 1:
+            # One watched function: its search, with no loop or batch of one around it. It is
+            # the only one reached at its root (`simultaneous_set` gives `has` itself), so the
+            # simultaneity rule needs no values there.
+            return EventChoice(jnp.where(any_event, root(0, a[0], b[0]), t_end),
+                               jnp.array(0, jnp.int32), jnp.array(False))
+        tk = roots_in_order()
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
