@@ -128,11 +128,10 @@ def hermite_root(a, b, fa, fb, da, db, newton_steps: int = 4):
         dp = (6 * s2 - 6 * s) * (fa - fb) + (3 * s2 - 4 * s + 1) * ta + (3 * s2 - 2 * s) * tb
         return p, dp
 
+    p0 = p_dp(s0)[0]
     s, lo, hi = s0, jnp.zeros_like(s0), jnp.ones_like(s0)
-    p0 = None
     for _ in range(newton_steps):
         p, dp = p_dp(s)
-        p0 = p if p0 is None else p0
         lo, hi = jnp.where(p > 0, s, lo), jnp.where(p <= 0, s, hi)
         sn = s - p / jnp.where(dp != 0, dp, 1.0)
         s = jnp.where((sn >= lo) & (sn <= hi), sn, 0.5 * (lo + hi))
