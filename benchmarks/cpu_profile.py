@@ -23,7 +23,7 @@ work (all but the step) per event.
 
 The same attribution counts the instructions of the ball's first-call programs (one
 execution, `jax.jit(simulate)` and `jax.jit(jax.grad(...))`, as on the first-call page): the
-program XLA compiles, by part.
+program XLA compiles, by part, and its kernels (fusions and copies, `kernels_of`) by part.
 
     python benchmarks/cpu_profile.py [--problems ball,thermostat,vdp_relay] [--n N] [--repeat 7] [--traced 3]
     # writes results/cpu_profile.json
@@ -197,14 +197,36 @@ RARE = ("root search", "minimum search (dips)", "first event and simultaneity", 
         "gathering and scattering blocks of lanes", "event phase: other (state updates)")
 
 
+def kernels_of(hlo: str) -> list[str]:
+    """The instructions of a compiled program that XLA:CPU emits a kernel for: the fusions and
+    copies of its unfused computations (the entry, loop bodies and conditions, branches). Their
+    number, more than the instructions', sets the compile time: each is emitted and
+    LLVM-compiled on its own."""
+    fused = set(re.findall(r"calls=%?([\w.\-]+)", hlo))
+    out, current = [], None
+    for line in hlo.splitlines():
+        head = re.match(r"(?:ENTRY )?%?([\w.\-]+) [({]", line)
+        if head:
+            current = head[1]
+            continue
+        m = re.match(r"\s+(?:ROOT )?%?([\w.\-]+) = \S+ (fusion|copy)\(", line)
+        if m and current not in fused:
+            out.append(m[1])
+    return out
+
+
 def program_parts(fn, *args) -> dict:
     """{part: instructions} of the optimised program XLA compiles for `fn(*args)`, each
-    instruction given to a part as the thunks are (`part_of`), and the total."""
-    chains, _ = frames_of(fn.lower(*args).compile().as_text())
+    instruction given to a part as the thunks are (`part_of`), and the total; likewise its
+    kernels (`kernels_of`)."""
+    hlo = fn.lower(*args).compile().as_text()
+    chains, _ = frames_of(hlo)
     check_frames(chains, "simulate")
     none = "without source frames (fusions' parameters and constants, tuples, copies)"
     count = collections.Counter(none if c is None else part_of(c) for c in chains.values())
-    return dict(total=sum(count.values()), parts=dict(count.most_common()))
+    kernels = collections.Counter(none if chains.get(k) is None else part_of(chains[k]) for k in kernels_of(hlo))
+    return dict(total=sum(count.values()), parts=dict(count.most_common()),
+                kernels_total=sum(kernels.values()), kernels=dict(kernels.most_common()))
 
 
 def first_call_programs() -> dict:
@@ -270,9 +292,9 @@ def main():
                 print(f"   {v['s'] * 1e3:8.2f} ms {100 * v['s'] / r['thread_s']:5.1f}%  {v['thunks']:7,} thunks  {part}")
     res["programs"] = first_call_programs()
     for call, prog in res["programs"].items():
-        print(f"one ball, {call}: {prog['total']:,} HLO instructions")
+        print(f"one ball, {call}: {prog['total']:,} HLO instructions, {prog['kernels_total']:,} kernels")
         for part, k in prog["parts"].items():
-            print(f"   {k:7,}  {part}")
+            print(f"   {k:7,}  {prog['kernels'].get(part, 0):5,}  {part}")
     print(f"wrote {write_json('cpu_profile', res)}")
 
 

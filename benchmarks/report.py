@@ -790,12 +790,22 @@ def cpu_profile(res: dict) -> list[str]:
         out += ["## The first call's program, by part", "",
                 "The optimised HLO of one execution of the ball (g = 9.8, e = 0.8, x0 = (1, 0), T = 3, default "
                 "tolerances), the programs of the [first-call page](first_call.md): instructions by part, "
-                "attributed as the thunks above (an instruction inside a fusion counts).", ""]
+                "attributed as the thunks above (an instruction inside a fusion counts), and *kernels*: the "
+                "fusions and copies XLA emits and compiles one by one (its compile time follows their number "
+                "more than the instructions').", ""]
         names = list(dict.fromkeys(p for c in calls for p in progs[c]["parts"]))
-        body = [[p] + [f"{progs[c]['parts'].get(p, 0):,} ({100 * progs[c]['parts'].get(p, 0) / progs[c]['total']:.0f}%)"
-                       for c in calls] for p in names]
-        body.append(["**total**"] + [f"**{progs[c]['total']:,}**" for c in calls])
-        out += _table(["part", *calls], body)
+        with_kernels = [c for c in calls if "kernels" in progs[c]]
+
+        def cell(c, p, key, total):
+            k = progs[c][key].get(p, 0)
+            return f"{k:,} ({100 * k / progs[c][total]:.0f}%)"
+
+        body = [[p] + [cell(c, p, "parts", "total") for c in calls]
+                + [cell(c, p, "kernels", "kernels_total") for c in with_kernels] for p in names]
+        body.append(["**total**"] + [f"**{progs[c]['total']:,}**" for c in calls]
+                    + [f"**{progs[c]['kernels_total']:,}**" for c in with_kernels])
+        out += _table(["part", *(f"{c}: instructions" for c in calls), *(f"{c}: kernels" for c in with_kernels)],
+                      body)
     return out
 
 
