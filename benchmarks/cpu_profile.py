@@ -199,9 +199,8 @@ RARE = ("root search", "minimum search (dips)", "first event and simultaneity", 
 
 def kernels_of(hlo: str) -> list[str]:
     """The instructions of a compiled program that XLA:CPU emits a kernel for: the fusions and
-    copies of its unfused computations (the entry, loop bodies and conditions, branches). Their
-    number, more than the instructions', sets the compile time: each is emitted and
-    LLVM-compiled on its own."""
+    copies of its unfused computations (the entry, loop bodies and conditions, branches), each
+    emitted, compiled and run as a unit of its own (a thunk)."""
     fused = set(re.findall(r"calls=%?([\w.\-]+)", hlo))
     out, current = [], None
     for line in hlo.splitlines():

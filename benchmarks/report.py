@@ -791,8 +791,7 @@ def cpu_profile(res: dict) -> list[str]:
                 "The optimised HLO of one execution of the ball (g = 9.8, e = 0.8, x0 = (1, 0), T = 3, default "
                 "tolerances), the programs of the [first-call page](first_call.md): instructions by part, "
                 "attributed as the thunks above (an instruction inside a fusion counts), and *kernels*: the "
-                "fusions and copies XLA emits and compiles one by one (its compile time follows their number "
-                "more than the instructions').", ""]
+                "fusions and copies XLA emits, compiles and runs one by one (each a thunk).", ""]
         names = list(dict.fromkeys(p for c in calls for p in progs[c]["parts"]))
         with_kernels = [c for c in calls if "kernels" in progs[c]]
 
