@@ -22,20 +22,34 @@ Problems B (Van der Pol relay) and C (thermostat) follow on one core: the lock-s
 hybridjax's batched engine and `jax.vmap(hj.simulate)`, `--n-other` executions each, errors
 against `work_precision.reference` (C's closed form; for B a Dopri8 run at 1e-13).
 
+"One core" is one JAX CPU device: XLA may still run a device's work on its pool of threads, one per
+core of the process. So problem A is also run, the lock-step loop, hybridjax and `jax.vmap(hj.simulate)`,
+in a child process allowed a single core (`os.sched_setaffinity` before JAX starts: one device, one
+thread), in alternating rounds of its own.
+
     python benchmarks/per_core.py [--n 10000] [--n-other 2000] [--rounds 7]   # results/per_core.json
 """
 
-import argparse
-import time
+import os
+import sys
 
-import diffrax
-import jax
-import jax.numpy as jnp
-import numpy as np
-import problems as P
-from _baselines import ball_bare_loop, diffrax_lockstep
-from _common import machine_info, write_json
-from work_precision import (  # also: one device per core, x64
+PINNED = "--pinned"  # the child process on a single core (`pinned`)
+if PINNED in sys.argv:  # before JAX sizes its thread pool by the cores this process may use
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import problems as P  # noqa: E402
+from _baselines import ball_bare_loop, diffrax_lockstep  # noqa: E402
+from _common import machine_info, write_json  # noqa: E402
+from work_precision import (  # noqa: E402  (also: one device per core, x64)
     ball_closed_form_jax,
     errors,
     reference,
@@ -149,15 +163,39 @@ def others(n, rounds):
     return out
 
 
+def pinned(n, rounds, prob, x0, m0, truths):
+    """In the child process on a single core: problem A three ways (`one_core_ways`), printed as
+    one JSON line."""
+    rows = timed(one_core_ways(prob), truths, prob, jnp.asarray(x0), jnp.asarray(m0), rounds)
+    lock = rows["diffrax lock-step loop"]["exec_per_s"]
+    for r in rows.values():
+        r["vs_lockstep"] = r["exec_per_s"] / lock
+    print(json.dumps(dict(cores=len(os.sched_getaffinity(0)), devices=len(jax.devices()), n=n, rows=rows)))
+
+
+def run_pinned(opts) -> dict:
+    """`pinned`'s result, from this script run again in a child process on a single core."""
+    out = subprocess.run([sys.executable, __file__, PINNED, "--n", str(opts.n), "--rounds", str(opts.rounds)],
+                         capture_output=True, text=True, check=True)
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    for name, r in res["rows"].items():
+        print(f"pinned to one core, {name:<26} {r['exec_per_s']:11.0f}/s {r['vs_lockstep']:6.2f}x the lock-step "
+              f"loop  error {r['error']:8.1e} wrong {r['wrong']}")
+    return res
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=10_000, help="executions")
     ap.add_argument("--n-other", type=int, default=2_000, help="executions of problems B and C")
     ap.add_argument("--rounds", type=int, default=7, help="timed rounds, alternating the ways")
+    ap.add_argument(PINNED, action="store_true", help=argparse.SUPPRESS)
     opts = ap.parse_args()
     prob = P.ball()
     x0, m0 = prob.sample(np.random.default_rng(5), opts.n)
     truths = [prob.truth(x, m) for x, m in zip(x0, m0, strict=True)]
+    if opts.pinned:
+        return pinned(opts.n, opts.rounds, prob, x0, m0, truths)
     xa, ma = jnp.asarray(x0), jnp.asarray(m0)
     rows = timed(ways(prob), truths, prob, xa, ma, opts.rounds)
     lock1 = opts.n / min(rows["diffrax lock-step loop, one core"]["runs_s"])
@@ -178,8 +216,9 @@ def main():
               f"the bare loop; the bare loop {b['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
               f"{b['exec_per_s'] / cf['exec_per_s']:.3f}x the closed form (each on {cores})")
     other = others(opts.n_other, opts.rounds)
+    single = run_pinned(opts)
     path = write_json("per_core", dict(machine=machine_info(), n=opts.n, rounds=opts.rounds, rows=rows,
-                                       others=other))
+                                       others=other, pinned=single))
     print(f"wrote {path}")
 
 

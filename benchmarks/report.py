@@ -225,7 +225,9 @@ def per_core(res: dict) -> list[str]:
                 "others by hand, an equal part of the executions on each device), and a fifth, "
                 "`jax.vmap(hj.simulate)` (the way `simulate_batch` runs on a GPU), on one core; in one process, best of "
                 f"{res['rounds']} alternating runs. Every way is compiled with the problem's parameters as "
-                "constants; errors are against the closed form for every execution.")
+                "constants; errors are against the closed form for every execution. *One core* is one JAX CPU "
+                "device: XLA may run a device's work on its pool of threads, one per core of the process (see "
+                "[Pinned to one core](#pinned-to-one-core) for the same ways in a process allowed one core).")
     body = []
     for name, r in rows.items():
         way, cores = name.rsplit(", ", 1)
@@ -254,6 +256,20 @@ def per_core(res: dict) -> list[str]:
                  r["wrong"]] for name, o in res["others"].items() for way, r in o["rows"].items()]
         out += _table(["problem", "N", "way", "executions/s", "x the lock-step loop", "max error",
                        "wrong event counts"], body)
+    if res.get("pinned"):
+        p = res["pinned"]
+        out += ["## Pinned to one core", "",
+                f"Problem A (N = {p['n']:,}) in a child process allowed {p['cores']} core "
+                f"(`os.sched_setaffinity` before JAX starts: {p['devices']} device, one thread in XLA's pool), "
+                f"best of {res['rounds']} alternating runs of its own; errors against the closed form.", ""]
+        body = [[way, _rate(r["exec_per_s"]), f"{r['vs_lockstep']:.2f}", f"{r['error']:.0e}", r["wrong"]]
+                for way, r in p["rows"].items()]
+        out += _table(["way", "executions/s", "x the lock-step loop", "max error", "wrong event counts"], body)
+        one = {k: rows[f"{k}, one core"]["exec_per_s"] for k in ("diffrax lock-step loop", "hybridjax")}
+        one["hybridjax vmap(simulate)"] = rows.get("hybridjax vmap(simulate), one core", {}).get("exec_per_s")
+        gains = [f"{way} {one[way] / r['exec_per_s']:.2f}x" for way, r in p["rows"].items() if one.get(way)]
+        out += ["The rate on one device (the first table) over the rate pinned to one core: "
+                + ", ".join(gains) + "."]
     return out
 
 
