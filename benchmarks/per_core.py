@@ -24,8 +24,8 @@ against `work_precision.reference` (C's closed form; for B a Dopri8 run at 1e-13
 
 "One core" is one JAX CPU device: XLA may still run a device's work on its pool of threads, one per
 core of the process. So problem A is also run, the lock-step loop, hybridjax and `jax.vmap(hj.simulate)`,
-in a child process allowed a single core (`os.sched_setaffinity` before JAX starts: one device, one
-thread), in alternating rounds of its own.
+in a child process allowed a single core (`os.sched_setaffinity` before JAX starts: one device, all
+its threads on that core), in alternating rounds of its own.
 
     python benchmarks/per_core.py [--n 10000] [--n-other 2000] [--rounds 7]   # results/per_core.json
 """

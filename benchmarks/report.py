@@ -260,7 +260,7 @@ def per_core(res: dict) -> list[str]:
         p = res["pinned"]
         out += ["## Pinned to one core", "",
                 f"Problem A (N = {p['n']:,}) in a child process allowed {p['cores']} core "
-                f"(`os.sched_setaffinity` before JAX starts: {p['devices']} device, one thread in XLA's pool), "
+                f"(`os.sched_setaffinity` before JAX starts: {p['devices']} device, all its threads on that core), "
                 f"best of {res['rounds']} alternating runs of its own; errors against the closed form.", ""]
         body = [[way, _rate(r["exec_per_s"]), f"{r['vs_lockstep']:.2f}", f"{r['error']:.0e}", r["wrong"]]
                 for way, r in p["rows"].items()]
