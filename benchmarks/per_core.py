@@ -148,18 +148,24 @@ def timed(fns, truths, prob, xa, ma, rounds):
     return rows
 
 
+def against_lockstep(rows, label):
+    """`rows` of `one_core_ways` with each way's rate over the lock-step loop's (`vs_lockstep`),
+    printed after `label`."""
+    lock = rows["diffrax lock-step loop"]["exec_per_s"]
+    for name, r in rows.items():
+        r["vs_lockstep"] = r["exec_per_s"] / lock
+        print(f"{label}, {name:<26} {r['exec_per_s']:11.0f}/s {r['vs_lockstep']:6.2f}x the lock-step loop"
+              f"  error {r['error']:8.1e} wrong {r['wrong']}")
+    return rows
+
+
 def others(n, rounds):
     """Problems B and C on one core (`one_core_ways`)."""
     out = {}
     for prob in (P.vdp_relay(), P.thermostat()):
         x0, m0 = prob.sample(np.random.default_rng(5), n)
         rows = timed(one_core_ways(prob), reference(prob, x0, m0), prob, jnp.asarray(x0), jnp.asarray(m0), rounds)
-        lock = rows["diffrax lock-step loop"]["exec_per_s"]
-        for name, r in rows.items():
-            r["vs_lockstep"] = r["exec_per_s"] / lock
-            print(f"{prob.name}, {name:<26} {r['exec_per_s']:11.0f}/s {r['vs_lockstep']:6.2f}x the lock-step loop"
-                  f"  error {r['error']:8.1e} wrong {r['wrong']}")
-        out[prob.name] = dict(n=n, rows=rows)
+        out[prob.name] = dict(n=n, rows=against_lockstep(rows, prob.name))
     return out
 
 
@@ -167,9 +173,7 @@ def pinned(n, rounds, prob, x0, m0, truths):
     """In the child process on a single core: problem A three ways (`one_core_ways`), printed as
     one JSON line."""
     rows = timed(one_core_ways(prob), truths, prob, jnp.asarray(x0), jnp.asarray(m0), rounds)
-    lock = rows["diffrax lock-step loop"]["exec_per_s"]
-    for r in rows.values():
-        r["vs_lockstep"] = r["exec_per_s"] / lock
+    rows = against_lockstep(rows, "pinned to one core")
     print(json.dumps(dict(cores=len(os.sched_getaffinity(0)), devices=len(jax.devices()), n=n, rows=rows)))
 
 
@@ -177,11 +181,9 @@ def run_pinned(opts) -> dict:
     """`pinned`'s result, from this script run again in a child process on a single core."""
     out = subprocess.run([sys.executable, __file__, PINNED, "--n", str(opts.n), "--rounds", str(opts.rounds)],
                          capture_output=True, text=True, check=True)
-    res = json.loads(out.stdout.strip().splitlines()[-1])
-    for name, r in res["rows"].items():
-        print(f"pinned to one core, {name:<26} {r['exec_per_s']:11.0f}/s {r['vs_lockstep']:6.2f}x the lock-step "
-              f"loop  error {r['error']:8.1e} wrong {r['wrong']}")
-    return res
+    lines = out.stdout.strip().splitlines()
+    print("\n".join(lines[:-1]))  # the child's rows, as `against_lockstep` printed them
+    return json.loads(lines[-1])
 
 
 def main():
