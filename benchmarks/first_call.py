@@ -19,9 +19,13 @@ the same call on the plain diffrax loop (a `lax.scan` over 64 epochs of `diffeqs
 and records the size of the program (the lowered StableHLO text: bytes, lines, operations; the
 optimised HLO that XLA compiled: instructions). Then the same with JAX's persistent compilation
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
-(tracing and lowering still run: the cache is keyed by the lowered program). Each result is
-checked against a closed form (derivatives: central differences of the closed form), and the
-error recorded beside the time.
+(tracing and lowering still run: the cache is keyed by the lowered program). Then the
+program's own XLA options, `jax.jit(..., compiler_options=FAST_COMPILE)` (XLA:CPU's own fusion
+emitters in place of its MLIR ones), on hybridjax and on the lock-step loop; and the call made
+directly, outside `jax.jit` (`hj.simulate(...)`, under `jax.grad` or `jax.jvp` for the
+derivatives), as in a notebook: compiled by hybridjax (`hybridjax._solve.eager`), its first
+result timed as a whole. Each result is checked against a closed form (derivatives: central
+differences of the closed form), and the error recorded beside the time.
 
     python benchmarks/first_call.py                     # prints a table, writes results/first_call.json
     python benchmarks/first_call.py --systems ball lif  # a subset
@@ -31,6 +35,7 @@ import time
 
 T_START = time.perf_counter()
 
+import functools  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
@@ -41,6 +46,11 @@ import tempfile  # noqa: E402
 SYSTEMS = ("ball", "thermostat", "wall", "lif")
 CALLS = ("forward", "reverse", "jvp")
 PROCESSES = ("no cache", "cache: first process", "cache: later process")
+# A program's own XLA options (`jax.jit(..., compiler_options=...)`): kernels compiled by XLA:CPU's
+# own fusion emitters, not its MLIR ones. Set per program, not per process.
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+FAST = "fusion emitters off"
+EAGER = "direct call"
 # The same call on the plain diffrax loop (`_baselines.diffrax_epoch_scan`), in a fresh process
 # without cache: what a user would compile without hybridjax. Not for the wall particle, whose
 # modes have different dimensions (one diffeqsolve carries one state shape).
@@ -93,7 +103,45 @@ def _sizes(lowered, compiled) -> dict:
                 hlo_instructions=sum(1 for line in hlo.splitlines() if instr.match(line)))
 
 
-def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
+def _errors(call: str, out, x0_list, closed) -> dict:
+    """The error against the closed form (derivatives: its central differences)."""
+    import numpy as np
+
+    x = np.asarray(x0_list, dtype=float)
+    ref = np.asarray(closed(x), dtype=float)
+
+    def cd(f, d, h=1e-6):
+        return (np.asarray(f(x + h * d), dtype=float) - np.asarray(f(x - h * d), dtype=float)) / (2 * h)
+
+    if call == "forward":
+        return dict(error=float(np.max(np.abs(np.asarray(out)[: ref.size] - ref))))
+    if call == "reverse":
+        want = np.array([cd(closed, e)[0] for e in np.eye(x.size)])
+        return dict(error=float(np.max(np.abs(np.asarray(out) - want))))
+    primal, tangent = (np.asarray(o)[: ref.size] for o in out)
+    want = cd(closed, np.ones_like(x))
+    return dict(error=float(np.max(np.abs(tangent - want))), primal_error=float(np.max(np.abs(primal - ref))))
+
+
+def _eager_result(fn, inputs, call, x0_list, closed, import_jax_s, import_hj_s) -> dict:
+    """The first and second direct calls, timed as wholes (tracing, lowering and compiling inside
+    hybridjax are not separated)."""
+    import jax
+
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*inputs))
+    first_call_s = time.perf_counter() - t
+    first_result_s, first_result_cpu_s = time.perf_counter() - T_START, time.process_time()
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*inputs))
+    second_run_s = time.perf_counter() - t
+    return dict(import_jax_s=import_jax_s, import_hybridjax_s=import_hj_s, first_call_s=first_call_s,
+                second_run_s=second_run_s, first_result_s=first_result_s, first_result_cpu_s=first_result_cpu_s,
+                **_errors(call, out, x0_list, closed))
+
+
+def one(system: str, call: str, cache: str | None, lock: bool = False, fast: bool = False,
+        eager: bool = False) -> dict:
     t = time.perf_counter()
     import jax
 
@@ -106,7 +154,6 @@ def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
     t = time.perf_counter()
     import diffrax
     import jax.numpy as jnp
-    import numpy as np
 
     import hybridjax as hj
 
@@ -128,12 +175,22 @@ def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
         def final(x, a, **kw):
             return hj.simulate(sysm, x, mode0, 0.0, t1, a, **kw).final_state
 
+    if eager:
+        # Called directly: hybridjax compiles the call (and picks forward mode's adjoint itself).
+        if call == "forward":
+            fn, inputs = final, (x0, args)
+        elif call == "reverse":
+            fn, inputs = jax.grad(lambda x, a: final(x, a)[0]), (x0, args)
+        else:
+            fn, inputs = (lambda x, w, a: jax.jvp(lambda y: final(y, a), (x,), (w,))), (x0, v, args)
+        return _eager_result(fn, inputs, call, x0_list, closed, import_jax_s, import_hj_s)
+    jit = functools.partial(jax.jit, compiler_options=FAST_COMPILE if fast else None)
     if call == "forward":
-        fn, inputs = jax.jit(final), (x0, args)
+        fn, inputs = jit(final), (x0, args)
     elif call == "reverse":
-        fn, inputs = jax.jit(jax.grad(lambda x, a: final(x, a)[0])), (x0, args)
+        fn, inputs = jit(jax.grad(lambda x, a: final(x, a)[0])), (x0, args)
     else:
-        fn = jax.jit(lambda x, w, a: jax.jvp(lambda y: final(y, a, adjoint=diffrax.ForwardMode()), (x,), (w,)))
+        fn = jit(lambda x, w, a: jax.jvp(lambda y: final(y, a, adjoint=diffrax.ForwardMode()), (x,), (w,)))
         inputs = (x0, v, args)
 
     t, c = time.perf_counter(), time.process_time()
@@ -154,23 +211,7 @@ def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
     jax.block_until_ready(compiled(*inputs))
     second_run_s = time.perf_counter() - t
 
-    # Closed-form check (derivatives: central differences of the closed form).
-    x = np.asarray(x0_list, dtype=float)
-    ref = np.asarray(closed(x), dtype=float)
-
-    def cd(f, d, h=1e-6):
-        return (np.asarray(f(x + h * d), dtype=float) - np.asarray(f(x - h * d), dtype=float)) / (2 * h)
-
-    if call == "forward":
-        got = np.asarray(out)[: ref.size]
-        errors = dict(error=float(np.max(np.abs(got - ref))))
-    elif call == "reverse":
-        want = np.array([cd(closed, e)[0] for e in np.eye(x.size)])
-        errors = dict(error=float(np.max(np.abs(np.asarray(out) - want))))
-    else:
-        primal, tangent = (np.asarray(o)[: ref.size] for o in out)
-        want = cd(closed, np.ones_like(x))
-        errors = dict(error=float(np.max(np.abs(tangent - want))), primal_error=float(np.max(np.abs(primal - ref))))
+    errors = _errors(call, out, x0_list, closed)
     res = dict(import_jax_s=import_jax_s, import_hybridjax_s=import_hj_s, trace_s=trace_s, lower_s=lower_s,
                trace_lower_s=trace_s + lower_s, compile_s=compile_s, first_run_s=first_run_s,
                second_run_s=second_run_s, first_result_s=first_result_s, trace_cpu_s=trace_cpu_s,
@@ -180,9 +221,10 @@ def one(system: str, call: str, cache: str | None, lock: bool = False) -> dict:
     return res
 
 
-def _run(system: str, call: str, cache: str | None = None, lock: bool = False) -> dict:
+def _run(system: str, call: str, cache: str | None = None, lock: bool = False, fast: bool = False,
+         eager: bool = False) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--one", system, call] + (["--cache", cache] if cache else [])
-    cmd += ["--lock"] if lock else []
+    cmd += ["--lock"] * lock + ["--fast"] * fast + ["--eager"] * eager
     t = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=os.path.dirname(os.path.abspath(__file__)))
     wall = time.perf_counter() - t
@@ -196,6 +238,11 @@ def _run(system: str, call: str, cache: str | None = None, lock: bool = False) -
 def _print_row(system, call, name, r):
     if "failed" in r:
         print(f"{system:10s} {call:7s} {name:22s} FAILED: {r['failed']}", flush=True)
+        return
+    if "trace_s" not in r:  # a direct call: its first call as a whole
+        print(f"{system:10s} {call:7s} {name:22s} {r['import_jax_s'] + r['import_hybridjax_s']:6.2f}s "
+              f"{'first call':>25s} {r['first_call_s']:7.2f}s {r['first_result_s']:8.2f}s {'':33s} "
+              f"{r['error']:9.1e}", flush=True)
         return
     print(f"{system:10s} {call:7s} {name:22s} {r['import_jax_s'] + r['import_hybridjax_s']:6.2f}s "
           f"{r['trace_s']:6.2f}s {r['lower_s']:6.2f}s {r['compile_s']:7.2f}s {r['first_run_s']:7.3f}s "
@@ -215,7 +262,7 @@ def main():
 
     jax.config.update("jax_enable_x64", True)
     payload = dict(machine=machine_info(), systems=list(systems), calls=list(CALLS), processes=list(PROCESSES),
-                   rows={})
+                   fast_compile=FAST_COMPILE, rows={})
     for system in systems:
         for call in CALLS:
             rows = {PROCESSES[0]: _run(system, call)}
@@ -224,9 +271,12 @@ def main():
                 for name in PROCESSES[1:]:
                     rows[name] = _run(system, call, cache)
                     _print_row(system, call, name, rows[name])
+            runs = {FAST: dict(fast=True), EAGER: dict(eager=True)}
             if system != "wall":
-                rows[LOCK] = _run(system, call, lock=True)
-                _print_row(system, call, LOCK, rows[LOCK])
+                runs = {LOCK: dict(lock=True), **runs, f"{LOCK}, {FAST}": dict(lock=True, fast=True)}
+            for name, how in runs.items():
+                rows[name] = _run(system, call, **how)
+                _print_row(system, call, name, rows[name])
             payload["rows"].setdefault(system, {})[call] = rows
             path = write_json("first_call", payload)  # after every row: a partial run keeps what it measured
     print("wrote", path)
@@ -236,6 +286,7 @@ if __name__ == "__main__":
     if "--one" in sys.argv:
         i = sys.argv.index("--one")
         cache = sys.argv[sys.argv.index("--cache") + 1] if "--cache" in sys.argv else None
-        print(json.dumps(one(sys.argv[i + 1], sys.argv[i + 2], cache, lock="--lock" in sys.argv)))
+        print(json.dumps(one(sys.argv[i + 1], sys.argv[i + 2], cache, lock="--lock" in sys.argv,
+                             fast="--fast" in sys.argv, eager="--eager" in sys.argv)))
     else:
         main()

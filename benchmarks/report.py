@@ -553,7 +553,13 @@ def first_call(res: dict) -> list[str]:
                 "lowering still run). The *lock-step loop* rows compile the same call on the plain diffrax loop, "
                 "a `lax.scan` over 64 epochs of `diffeqsolve` + `diffrax.Event` (Tsit5, the same tolerances; "
                 "not for the wall particle, whose modes have different dimensions), in a fresh process "
-                "without cache. See the [FAQ](../faq.md#compile-time).")
+                "without cache. *fusion emitters off*: the same `jax.jit` given the program's own XLA options, "
+                f"`compiler_options={res.get('fast_compile', {})}` (XLA:CPU's own fusion emitters in place of its "
+                "MLIR ones; the process's `XLA_FLAGS` unchanged), on hybridjax and on the lock-step loop. "
+                "*direct call*: the call made outside `jax.jit` as in a notebook (`hj.simulate(...)`, under "
+                "`jax.grad` or `jax.jvp` for the derivatives), which hybridjax compiles itself, for one "
+                "execution without reverse mode with the options above: its first call (tracing, lowering, "
+                "compiling and running) is timed as a whole. See the [FAQ](../faq.md#compile-time).")
     names = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle", "lif": "integrate-and-fire"}
     for call in res["calls"]:
         body = []
@@ -561,6 +567,12 @@ def first_call(res: dict) -> list[str]:
             for proc, r in res["rows"].get(system, {}).get(call, {}).items():
                 if "failed" in r:
                     body.append([names.get(system, system), proc, "failed: " + r["failed"], *[""] * 8])
+                    continue
+                if "trace_s" not in r:  # a direct call, timed as a whole
+                    body.append([names.get(system, system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
+                                 f"first call: {r['first_call_s']:.1f} s", "", "", "",
+                                 f"**{r['first_result_s']:.1f} s** ({r['first_result_cpu_s']:.1f} s CPU)", "", "",
+                                 f"{r['error']:.0e}"])
                     continue
                 body.append([names.get(system, system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
                              f"{r['trace_s']:.1f} s", f"{r['lower_s']:.1f} s", f"{r['compile_s']:.1f} s",

@@ -170,3 +170,36 @@ def test_forward_mode_through_a_jit_of_the_default_adjoint_names_the_fix():
     with pytest.warns(UserWarning, match=r"adjoint=diffrax\.ForwardMode\(\)"):
         with pytest.raises(TypeError, match="custom_vjp"):
             jax.jvp(jax.jit(final_state), (jnp.array([1.0, 0.0]),), (TANGENT,))
+
+
+def test_the_compiler_options_of_a_direct_call_follow_its_executions_derivatives_and_backend():
+    # XLA:CPU's own fusion emitters for one execution without reverse mode on the CPU; XLA's
+    # defaults for a batch, a reverse-mode derivative, or another backend.
+    from hybridjax._solve.eager import FAST_COMPILE_CPU, eager_compiler_options
+
+    assert FAST_COMPILE_CPU == {"xla_cpu_use_fusion_emitters": False}
+    for modes in (frozenset(), frozenset({"forward"})):
+        assert eager_compiler_options(True, modes, False, "cpu") == FAST_COMPILE_CPU
+    for one, modes, batched, backend in [(False, frozenset(), False, "cpu"),
+                                         (True, frozenset(), True, "cpu"),
+                                         (True, frozenset({"reverse"}), False, "cpu"),
+                                         (True, frozenset({"forward", "reverse"}), False, "cpu"),
+                                         (True, frozenset(), False, "gpu")]:
+        assert eager_compiler_options(one, modes, batched, backend) == {}
+
+
+def test_a_batch_is_seen_at_the_call_only_above_the_nearest_jit():
+    from hybridjax._core.transforms import batched_at_call
+
+    seen = []
+
+    def f(x):
+        seen.append(batched_at_call())
+        return x
+
+    xs = jnp.ones(3)
+    f(xs[0])
+    jax.vmap(f)(xs)
+    jax.jit(jax.vmap(f))(xs)  # traced inside the jit, under the batch
+    jax.vmap(jax.jit(f))(xs)  # the jit's own trace is nearer than the batch
+    assert seen == [False, True, True, False]

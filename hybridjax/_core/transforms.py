@@ -76,6 +76,13 @@ def eager_at_top() -> bool:
     return _chain()[1] == "EvalTrace"
 
 
+def batched_at_call() -> bool:
+    """Whether a batching trace (`jax.vmap`, and the batches of `jax.jacfwd` and `jax.jacrev`)
+    lies between the call and the nearest other trace: for a call made outside `jax.jit`
+    (`eager_at_top`), whether it runs a batch."""
+    return "BatchTrace" in _chain()[0]
+
+
 def derivative_modes() -> frozenset:
     """The derivatives taken through the call: "forward" (`jax.jvp`, `jax.jacfwd`), "reverse"
     (`jax.grad`, `jax.vjp`, `jax.jacrev`), both (`jax.hessian`) or none."""

@@ -19,7 +19,7 @@ from .engines import AbstractEngine, as_engine, step_engine
 from .prepare import initial_state, prepare, promote_args, save_times, solve_options
 
 
-@compiled_when_eager(check_time_span)
+@compiled_when_eager(check_time_span, one_execution=True)
 def simulate(
     system: HybridSystem,
     x0: Float[ArrayLike, " dim"],
@@ -60,8 +60,11 @@ def simulate(
     with arrays of the same shapes and dtypes, equal other arguments and the same
     transformations runs it at once, so a loop of `jax.grad` steps compiles once. Python numbers
     (in `args`, `t0`, `t1`, the options) are constants of the program, so a changed one
-    compiles a new program: pass a parameter you vary as an array (`jnp.asarray(0.8)`). Inside
-    `jax.jit` the call is traced with its caller, as any JAX function.
+    compiles a new program: pass a parameter you vary as an array (`jnp.asarray(0.8)`). On the
+    CPU, such a call without `jax.vmap` or reverse mode compiles with XLA:CPU's own fusion
+    emitters (`compiler_options={"xla_cpu_use_fusion_emitters": False}`), in about half the XLA
+    time, running as fast (FAQ, "Compile time"). Inside `jax.jit` the call is traced with its
+    caller, as any JAX function, and compiled with the caller's options.
 
     **Arguments:**
 
