@@ -203,3 +203,23 @@ def test_a_batch_is_seen_at_the_call_only_above_the_nearest_jit():
     jax.jit(jax.vmap(f))(xs)  # traced inside the jit, under the batch
     jax.vmap(jax.jit(f))(xs)  # the jit's own trace is nearer than the batch
     assert seen == [False, True, True, False]
+
+
+def test_an_option_xla_does_not_know_falls_back_to_the_defaults(monkeypatch):
+    # A jaxlib whose XLA lacks the option: the direct call runs with XLA's defaults instead.
+    from hybridjax._solve import eager
+
+    monkeypatch.setattr(eager, "_REFUSED", [])
+    f = lambda x: 2.0 * x + 1.0  # noqa: E731
+    unknown = jax.jit(f, compiler_options={"xla_cpu_no_such_option": False})
+    got = eager.with_default_options_if_refused(unknown, jax.jit(f), jnp.arange(3.0))
+    np.testing.assert_array_equal(got, [1.0, 3.0, 5.0])
+    assert eager._REFUSED == [True]
+    # A known option is used, and an error of the call itself is not taken for a refusal.
+    monkeypatch.setattr(eager, "_REFUSED", [])
+    known = jax.jit(f, compiler_options=eager.FAST_COMPILE_CPU)
+    np.testing.assert_array_equal(eager.with_default_options_if_refused(known, None, jnp.arange(3.0)),
+                                  [1.0, 3.0, 5.0])
+    assert eager._REFUSED == []
+    with pytest.raises(TypeError):
+        eager.with_default_options_if_refused(known, jax.jit(f), "not an array")

@@ -27,7 +27,9 @@ derivatives, on the CPU, is compiled with XLA:CPU's own fusion emitters instead 
 fusion emitters (`eager_compiler_options`): most of such a program's compile time is spent
 compiling its kernels one by one, which these emitters do in about half the time, and a single
 execution runs as fast. Batches keep the default, which runs them faster; reverse mode keeps it
-too (its programs gain less and some run slower). The results are the same to rounding.
+too (its programs gain less and some run slower). The results are the same to rounding. A
+jaxlib whose XLA does not know the option runs the call with the defaults
+(`with_default_options_if_refused`).
 
 Left to the plain call: calls inside `jax.jit` (or `lax.scan`, `jax.checkpoint`, ...), which
 compile with their caller; arguments with an unhashable non-array leaf; and calls that need a
@@ -133,6 +135,24 @@ def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool,
     return {}
 
 
+# Whether this process's XLA refused an option of `FAST_COMPILE_CPU` (a jaxlib without it).
+_REFUSED: list[bool] = []
+
+
+def with_default_options_if_refused(with_options: Callable, default: Callable, *args):
+    """`with_options(*args)`, a function compiled with extra XLA options; `default(*args)` where
+    XLA does not know one of them ("No such compile option": a jaxlib older or newer than the
+    option), and from then on in the process, so that a direct call never fails for it."""
+    if not _REFUSED:
+        try:
+            return with_options(*args)
+        except jax.errors.JaxRuntimeError as err:
+            if "No such compile option" not in str(err):
+                raise
+            _REFUSED.append(True)
+    return default(*args)
+
+
 def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = False) -> Callable:
     """Decorator: `fn` called outside `jax.jit` (also under `jax.grad`, `jax.vmap`, ...) runs as
     `eqx.filter_jit(fn)`.
@@ -192,7 +212,10 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                 # JAX differentiates the compiled call here, where a forward-mode derivative
                 # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
                 with naming_the_forward_mode_fix():
-                    return compiled[fast](call_args, call_kwargs, (modes, checked))
+                    if fast:
+                        return with_default_options_if_refused(compiled[True], compiled[False], call_args,
+                                                               call_kwargs, (modes, checked))
+                    return compiled[False](call_args, call_kwargs, (modes, checked))
             except _NEEDS_CONCRETE:
                 pass
             return fn(*bound.args, **bound.kwargs)
