@@ -20,7 +20,8 @@ and records the size of the program (the lowered StableHLO text: bytes, lines, o
 optimised HLO that XLA compiled: instructions). Then the same with JAX's persistent compilation
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
 (tracing and lowering still run: the cache is keyed by the lowered program). Then the
-program's own XLA options, `jax.jit(..., compiler_options=FAST_COMPILE)` (XLA:CPU's own fusion
+program's own XLA options, `jax.jit(..., compiler_options=...)`, the ones a direct call of
+`hj.simulate` uses (`hybridjax._solve.eager.FAST_COMPILE_CPU`: XLA:CPU's own fusion
 emitters in place of its MLIR ones), on hybridjax and on the lock-step loop; and the call made
 directly, outside `jax.jit` (`hj.simulate(...)`, under `jax.grad` or `jax.jvp` for the
 derivatives), as in a notebook: compiled by hybridjax (`hybridjax._solve.eager`), its first
@@ -46,9 +47,8 @@ import tempfile  # noqa: E402
 SYSTEMS = ("ball", "thermostat", "wall", "lif")
 CALLS = ("forward", "reverse", "jvp")
 PROCESSES = ("no cache", "cache: first process", "cache: later process")
-# A program's own XLA options (`jax.jit(..., compiler_options=...)`): kernels compiled by XLA:CPU's
-# own fusion emitters, not its MLIR ones. Set per program, not per process.
-FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+# A program's own XLA options (`jax.jit(..., compiler_options=...)`), those of a direct call
+# (`FAST_COMPILE_CPU`): kernels compiled by XLA:CPU's own fusion emitters, not its MLIR ones.
 FAST = "fusion emitters off"
 EAGER = "direct call"
 # The same call on the plain diffrax loop (`_baselines.diffrax_epoch_scan`), in a fresh process
@@ -184,7 +184,9 @@ def one(system: str, call: str, cache: str | None, lock: bool = False, fast: boo
         else:
             fn, inputs = (lambda x, w, a: jax.jvp(lambda y: final(y, a), (x,), (w,))), (x0, v, args)
         return _eager_result(fn, inputs, call, x0_list, closed, import_jax_s, import_hj_s)
-    jit = functools.partial(jax.jit, compiler_options=FAST_COMPILE if fast else None)
+    from hybridjax._solve.eager import FAST_COMPILE_CPU
+
+    jit = functools.partial(jax.jit, compiler_options=FAST_COMPILE_CPU if fast else None)
     if call == "forward":
         fn, inputs = jit(final), (x0, args)
     elif call == "reverse":
@@ -260,9 +262,11 @@ def main():
           f"{'1st run':>8s} {'total':>8s} {'StableHLO':>8s} {'ops':>7s} {'HLO':>7s} {'error':>9s}", flush=True)
     import jax
 
+    from hybridjax._solve.eager import FAST_COMPILE_CPU
+
     jax.config.update("jax_enable_x64", True)
     payload = dict(machine=machine_info(), systems=list(systems), calls=list(CALLS), processes=list(PROCESSES),
-                   fast_compile=FAST_COMPILE, rows={})
+                   fast_compile=FAST_COMPILE_CPU, rows={})
     for system in systems:
         for call in CALLS:
             rows = {PROCESSES[0]: _run(system, call)}
