@@ -4,9 +4,13 @@ import os
 # are turned off, which compiles ~3x faster (most of the suite's time is compiling) and runs the
 # small test problems slower, with the same IEEE operations (no fast-math either way) rounded in
 # another order in places (benchmarks/compile_time.py checks the default setting against the
-# closed form). Set before jax creates its CPU backend; notebook kernels started by tests inherit it.
+# closed form). XLA:CPU's concurrency-optimised thunk schedule is turned off too: with the first
+# two flags alone, jaxlib 0.10.2 ran some programs with results that depend on its threads
+# (docs: FAQ, "Compile time"). Set before jax creates its CPU backend; notebook kernels started
+# by tests inherit it.
 os.environ["XLA_FLAGS"] = " ".join(
-    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false"]
+    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false",
+     "--xla_cpu_enable_concurrency_optimized_scheduler=false"]
 ).strip()
 
 import jax  # noqa: E402

@@ -72,6 +72,7 @@ from .._step.runge_kutta import (
     scaled_error,
 )
 from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
+from .event_record import event_rows
 from .lanes import Finals, LaneRecord, Lanes, _gather_lanes, _scatter_lanes, _take_lanes, default_block
 from .seeding import perturbed_like_the_body
 from .xla_cpu import _computed_once, _materialize, _rows_all, _rows_any, first_lanes, running_count
@@ -201,7 +202,7 @@ class StepEvent(NamedTuple):
 # (t0, x0, args, t1), whichever of them is differentiated (`perturbed_like_the_body`).
 LANE_DIFFERENTIABLE_FIELDS = (
     "t", "y", "f0", "zeno_time", "zeno_state", "recent_times", "recent_states",
-    "event_times", "states_before", "states_after", "ys", "finals",
+    "real", "ys", "finals",
 )
 
 
@@ -389,25 +390,13 @@ class BatchedLoop:
         at_t0 = lane_ts <= t0[:, None]
         ys = jnp.where(at_t0[:, :, None], y0.T[:, None, :], jnp.inf).astype(dtype)
         saved_modes = jnp.where(at_t0, mode0[:, None], -1).astype(jnp.int32)
-        # One more row (execution N) and at least one column: events not kept are written
-        # there, not dropped out of bounds (a loop buffer's reverse pass reads every written
-        # index back, and an out-of-bounds read is NaN).
-        E1 = max(E, 1)
         finals = None
         if self.refill:
             # Every execution MAX_STEPS until its lane hands it in, plus entry N where lanes
             # without an execution write; no gradient, as each entry is overwritten once.
             unrun = _stop(self.fresh(jnp.arange(N + 1), N), (jnp.ones((N + 1,), bool), Status.MAX_STEPS))
             finals = sg(Finals.of(unrun))
-        rec = LaneRecord(
-            event_times=jnp.full((N + 1, E1), jnp.inf, dtype),
-            transitions=jnp.full((N + 1, E1), -1, jnp.int32),
-            epoch_modes=jnp.full((N + 1, E1 + 1), -1, jnp.int32).at[:N, 0].set(mode0),
-            simultaneous=jnp.zeros((N + 1, E1), bool), grazing=jnp.zeros((N + 1, E1), bool),
-            inside_guard=jnp.zeros((N + 1, E1), bool),
-            states_before=jnp.full((N + 1, E1, n), jnp.inf, dtype),
-            states_after=jnp.full((N + 1, E1, n), jnp.inf, dtype),
-            ys=ys, saved_modes=saved_modes, finals=finals)
+        rec = LaneRecord.empty(N, E, n, dtype, mode0, ys, saved_modes, finals)
         return st, rec
 
     # ------------------------------------------------------------------ refill
@@ -445,21 +434,12 @@ class BatchedLoop:
         # num_exec: the row not returned (lanes without a kept event, a block's spare slots).
         ids = jnp.where(kept, st.exec_id, self.num_exec)
         no = jnp.zeros_like(kept)
-
-        def put(a, v, col=row):
-            return a.at[ids, col].set(v.astype(a.dtype))
-
-        def put_state(a, v):  # v (n, lanes) into a (executions, epochs, n)
-            return a.at[ids, row].set(v.T.astype(a.dtype))
-
-        return eqx.tree_at(
-            lambda r: (r.event_times, r.transitions, r.epoch_modes, r.simultaneous, r.grazing,
-                       r.inside_guard, r.states_before, r.states_after), rec,
-            (put(rec.event_times, t_ev), put(rec.transitions, k), put(rec.epoch_modes, target, row + 1),
-             put(rec.simultaneous, no if simultaneous is None else simultaneous),
-             put(rec.grazing, no if grazing is None else grazing),
-             put(rec.inside_guard, no if inside is None else inside),
-             put_state(rec.states_before, y_before), put_state(rec.states_after, y_after)))
+        rows = event_rows(t_ev, y_before.T, y_after.T, k, target, *(no if f is None else f
+                                                                   for f in (simultaneous, grazing, inside)),
+                          dtype=self.dtype)
+        return eqx.tree_at(lambda r: (r.real, r.index, r.flag), rec,
+                           tuple(a.at[ids, row].set(v) for a, v in zip((rec.real, rec.index, rec.flag), rows,
+                                                                      strict=True)))
 
     def begin_epoch(self, st: Lanes, mask, kept, t, y, mode, zero_run) -> Lanes:
         """The lanes in `mask` at the start of an epoch at (t, y) in `mode`, after an event

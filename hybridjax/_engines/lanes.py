@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from .._core.status import Status
+from .event_record import empty_events, solution_arrays
 
 
 class Lanes(eqx.Module):
@@ -57,29 +58,36 @@ class Finals(eqx.Module):
 
 
 class LaneRecord(eqx.Module):
-    """The events of the executions, in the `Solution`'s own arrays and dtypes (executions
-    first), written in place by a scatter per array in iterations with events: the loop's
-    output is the record itself, not a copy."""
+    """The events of the executions (executions first, stored by dtype: `event_record`), written
+    in place by one scatter per dtype in iterations with events; the loop's output is the
+    record itself, not a copy. `fields` reads the `Solution`'s arrays off it at the end."""
 
-    # (N + 1, E): row N takes the writes of events not kept (`BatchedLoop.jump`); E >= 1
-    event_times: jax.Array
-    transitions: jax.Array  # int32
-    epoch_modes: jax.Array  # (N + 1, E + 1) int32, column 0 the initial mode
-    simultaneous: jax.Array  # bool
-    grazing: jax.Array  # bool
-    inside_guard: jax.Array  # bool
-    states_before: jax.Array  # (N + 1, E, n)
-    states_after: jax.Array  # (N + 1, E, n)
+    # (N + 1, E, 1 + 2n): event time, state before, state after. Row N takes the writes of
+    # events not kept (`BatchedLoop.jump`); E >= 1.
+    real: jax.Array
+    index: jax.Array  # (N + 1, E, 2) int32: transition, the mode of the epoch it starts
+    flag: jax.Array  # (N + 1, E, 3) bool: simultaneous, grazing, inside the guard
+    first_modes: jax.Array  # (N,) int32: each execution's initial mode (not written in the loop)
     ys: jax.Array  # (N, S, n) saved states
     saved_modes: jax.Array  # (N, S)
     finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
+
+    @classmethod
+    def empty(cls, num_exec: int, max_epochs: int, n: int, dtype, mode0, ys, saved_modes,
+              finals) -> "LaneRecord":
+        """A record without events (`empty_events`), with one more row, execution N, and at
+        least one column: events not kept are written there, not dropped out of bounds, since
+        a loop buffer's reverse pass reads every written index back and an out-of-bounds read
+        is NaN."""
+        real, index, flag = empty_events((num_exec + 1, max(max_epochs, 1)), n, dtype)
+        return cls(real=real, index=index, flag=flag, first_modes=jnp.asarray(mode0, jnp.int32), ys=ys,
+                   saved_modes=saved_modes, finals=finals)
 
     def buffers(self) -> list:
         """The event and final-value arrays, selected by attribute as `eqxi.while_loop`'s
         `buffers` wants them. (Not the saved states: written from a nested loop inside a
         `lax.cond`, as buffers their reverse-mode gradient came out NaN.)"""
-        skip = ("finals", "ys", "saved_modes")
-        events = [getattr(self, f) for f in self.__dataclass_fields__ if f not in skip]
+        events = [self.real, self.index, self.flag]
         finals = self.finals
         if not isinstance(finals, Finals):  # None (tree_at sees it as a leaf)
             return events
@@ -88,12 +96,9 @@ class LaneRecord(eqx.Module):
     def fields(self, num_exec: int, max_epochs: int) -> dict:
         """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
         column), where writes that are not kept land (see `BatchedLoop.jump`)."""
-        out = {f: getattr(self, f) for f in self.__dataclass_fields__ if f != "finals"}
-        for f in ("event_times", "transitions", "simultaneous", "grazing", "inside_guard", "states_before",
-                  "states_after"):
-            out[f] = out[f][:num_exec, :max_epochs]
-        out["epoch_modes"] = out["epoch_modes"][:num_exec, :max_epochs + 1]
-        return out
+        real, index, flag = (a[:num_exec, :max_epochs] for a in (self.real, self.index, self.flag))
+        return dict(**solution_arrays(real, index, flag, self.first_modes[:num_exec]), ys=self.ys,
+                    saved_modes=self.saved_modes)
 
 
 def as_status(codes) -> Status:

@@ -495,8 +495,11 @@ def _terminal_domain(t, x, args):
 SEARCH_CHUNK = 8
 # The search runs a few times per build and its program is large (the contact equations, their
 # derivatives, the trust-region solve): XLA's backend optimisation would take most of its
-# compile time and save little of its run time.
-_SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+# compile time and save little of its run time. With those two options, XLA:CPU's
+# concurrency-optimised thunk schedule has run programs with results that depend on its threads
+# (jaxlib 0.10.2; docs: FAQ, "Compile time"): it is turned off with them.
+_SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False,
+                   "xla_cpu_enable_concurrency_optimized_scheduler": False}
 
 
 def run_search(constraints, queries, args_batch, samples, search: SearchOptions):
