@@ -60,7 +60,8 @@ class Finals(eqx.Module):
 class LaneRecord(eqx.Module):
     """The events of the executions (executions first, stored by dtype: `event_record`), written
     in place by one scatter per dtype in iterations with events; the loop's output is the
-    record itself, not a copy. `fields` reads the `Solution`'s arrays off it at the end."""
+    record itself, not a copy. `fields` reads the `Solution`'s arrays off it once, at the end:
+    the one copy of the record a call makes."""
 
     # (N + 1, E, 1 + 2n): event time, state before, state after. Row N takes the writes of
     # events not kept (`BatchedLoop.jump`); E >= 1.
