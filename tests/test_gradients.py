@@ -129,14 +129,20 @@ def test_gradient_wrt_a_guard_parameter_and_of_saved_states():
 @pytest.mark.parametrize("engine", ["per-execution", "batched"])
 def test_the_loop_starts_with_the_derivatives_its_body_gives(engine):
     # equinox's checkpointed loop finds which carried values carry a derivative by
-    # differentiating the body until the set stops growing (`_resolve_perturb_val`). Each
-    # engine's loop starts from that set (`perturbed_like_the_body`): the search's first round
-    # must find it unchanged, whether x0 or args is differentiated. A field added to the state
+    # differentiating the body until the set stops growing (`_resolve_perturb_val`): the oracle
+    # here. Each engine's loop starts from that set (`perturbed_like_the_body`): the search's
+    # first round must find it unchanged, whether x0 or args is differentiated. The
+    # per-execution loop's own checkpointed loop differentiates exactly the leaves its list
+    # names (`differentiated_leaves`), so the list must be that set: run here through equinox's
+    # loop, the list's leaves are compared with what equinox finds. A field added to the state
     # and missing from the engine's list (`DIFFERENTIABLE_FIELDS`, `LANE_DIFFERENTIABLE_FIELDS`)
     # shows here as a difference.
+    import equinox.internal as eqxi
     from equinox.internal._loop import checkpointed
 
-    found = []
+    from hybridjax._engines import loop as loop_module
+
+    found, listed = [], []
     resolve = checkpointed._resolve_perturb_val
 
     def recording(final_val, body_fun, perturb_val, perturb_body_fun):
@@ -144,19 +150,30 @@ def test_the_loop_starts_with_the_derivatives_its_body_gives(engine):
         found.append((jax.tree_util.tree_leaves(perturb_val), jax.tree_util.tree_leaves(out)))
         return out
 
+    def through_equinox(cond, body, carry, *, max_steps, checkpoints, differentiated):
+        listed.append(differentiated(carry))
+        return eqxi.while_loop(cond, body, carry, max_steps=max_steps, kind="checkpointed")
+
     def height(x0, args):
         if engine == "batched":
             return hj.simulate_batch(BALL, x0[None], "flight", 0.0, 2.0, args, engine="batched").final_state[0, 0]
         return hj.simulate(BALL, x0, "flight", 0.0, 2.0, args).final_state[0]
 
     x0, args = jnp.array([1.0, 0.3]), {"g": jnp.asarray(9.8), "e": jnp.asarray(0.8)}
+    own_loop = loop_module.checkpointed_while_loop
     checkpointed._resolve_perturb_val = recording
+    loop_module.checkpointed_while_loop = through_equinox
     try:
         jax.make_jaxpr(jax.grad(height, argnums=0))(x0, args)
         jax.make_jaxpr(jax.grad(height, argnums=1))(x0, args)
     finally:
         checkpointed._resolve_perturb_val = resolve
+        loop_module.checkpointed_while_loop = own_loop
     assert len(found) == 2
     for start, fixed in found:
         assert sum(fixed) > 2  # the record carries derivatives
         assert start == fixed
+    if engine == "per-execution":
+        # equinox's carry holds its own counters before the loop's (no derivatives)
+        assert [fixed[-len(mine):] for mine, (_, fixed) in zip(listed, found, strict=True)] == listed
+        assert not any(any(fixed[:-len(mine)]) for mine, (_, fixed) in zip(listed, found, strict=True))

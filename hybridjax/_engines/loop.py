@@ -31,9 +31,11 @@ almost every iteration of a large batch. Only the small per-execution state pass
 the phase's `lax.cond` (a conditional copies what it passes through).
 
 An epoch is therefore one integration by the solver's own `step`, the controller's
-`adapt_step_size` and dense interpolation, ended by an event. The loop is equinox's internal
-while loop, `checkpointed` for reverse mode (as diffrax's `RecursiveCheckpointAdjoint`), `lax`
-for forward mode, `bounded` for both: a bare `lax.while_loop` cannot be reverse-differentiated.
+`adapt_step_size` and dense interpolation, ended by an event. For reverse mode (diffrax's
+`RecursiveCheckpointAdjoint`) the loop is `checkpointed_while_loop`, which differentiates the
+carried fields of `DIFFERENTIABLE_FIELDS` through checkpoints; for `ForwardMode` equinox's `lax`
+while loop, for `DirectAdjoint` its `bounded` one (both modes; a bare `lax.while_loop` cannot be
+reverse-differentiated).
 The guards are sampled on the dense output at constant fractions of the step (for an explicit
 Runge-Kutta solver, constant weights of its stages, `dense_weights`: elementwise arithmetic,
 where diffrax's interpolation is a small matrix product per sample); events are located on
@@ -47,6 +49,7 @@ at that traced time, so AD through the loop composes flows and resets into the s
 matrix.
 """
 
+import dataclasses
 from typing import Any
 
 import diffrax
@@ -72,6 +75,7 @@ from .._rules.step import nonfinite_step, step_stops
 from .._rules.tolerances import clip_to_times, event_time_tol, step_end
 from .._rules.zeno import detect_zeno
 from .._step.runge_kutta import UnrolledERK
+from .checkpointed import checkpointed_while_loop
 from .dense_weights import ChebyshevDense, chebyshev_weights, dense_weights, stage_combination
 from .seeding import perturbed_like_the_body
 
@@ -183,12 +187,22 @@ def _stop(st: LoopState, *rules) -> LoopState:
 # The carried fields that the loop's body computes from the state, and so from the inputs
 # (t0, x0, args, t1), whichever of them is differentiated; the others (step size, controller
 # state, the watched values, which the loop keeps without gradients, and the integer and
-# boolean fields) never carry a derivative. `perturbed_like_the_body`.
+# boolean fields) never carry a derivative. `perturbed_like_the_body` seeds them; reverse mode
+# differentiates exactly them (`checkpointed_while_loop`), so a field missing here loses its
+# derivative: tests/test_gradients.py checks the list against equinox's search.
 DIFFERENTIABLE_FIELDS = (
     "t", "y", "solver_state", "pend_time", "pend_before", "pend_after", "zeno_time", "zeno_state",
     "recent_times", "recent_states", "p_t0", "p_t1", "p_y1", "p_dense", "p_solver_state",
     "event_times", "states_before", "states_after", "ys",
 )
+
+
+def differentiated_leaves(carry) -> list[bool]:
+    """Per leaf of the loop's carry `(LoopState, EventRecord)`, whether it may carry a
+    derivative: the inexact leaves of `DIFFERENTIABLE_FIELDS` (`checkpointed_while_loop`)."""
+    return [name in DIFFERENTIABLE_FIELDS and eqx.is_inexact_array(leaf)
+            for part in carry for name in (f.name for f in dataclasses.fields(part))
+            for leaf in jtu.tree_leaves(getattr(part, name))]
 
 
 class Loop:
@@ -763,13 +777,12 @@ class Loop:
         # (the record included) between its old and new value at every iteration, a pass over
         # all of it that also keeps the record from being updated in place. Every stage leaves
         # a finished execution as it is, so running the body for it changes nothing.
-        st, rec = eqxi.while_loop(
-            lambda c: eqxi.unvmap_any(~c[0].done),
-            self.body,
-            carry,
-            max_steps=bound,
-            kind=self.loop_kind,
-            checkpoints=self.checkpoints if self.loop_kind == "checkpointed" else None,
-        )
+        cond = lambda c: eqxi.unvmap_any(~c[0].done)  # noqa: E731
+        if self.loop_kind == "checkpointed":
+            st, rec = checkpointed_while_loop(
+                cond, self.body, carry, max_steps=bound, checkpoints=self.checkpoints,
+                differentiated=differentiated_leaves)
+        else:
+            st, rec = eqxi.while_loop(cond, self.body, carry, max_steps=bound, kind=self.loop_kind)
         # The loop's own bound can only be met by executions that are still running.
         return _stop(st, (jnp.array(True), Status.MAX_STEPS)), rec

@@ -1,0 +1,165 @@
+"""The per-execution loop's reverse mode: a while loop with checkpoints and its own VJP.
+
+The loop's caller knows which carried leaves can carry a derivative (`Loop`'s
+`DIFFERENTIABLE_FIELDS`), so this loop takes them as given: tracing its reverse mode costs one
+trace of the body and one of its VJP, where a loop that works out which leaves are perturbed and
+which cotangents are symbolic zeros traces the body's JVP and VJP again for each question.
+
+Checkpoints every k iterations: the forward pass stores the carry at iterations 0, k, 2k, ...
+(S = ceil(max_steps / k) stores); the backward pass takes the segments from the last to the
+first, recomputes a segment's at most k iterations from its checkpoint (keeping each carry), and
+pulls the cotangent back through them one at a time with `jax.vjp` of the body. Every iteration
+is recomputed once; the memory is S + k carries, k = ceil(sqrt(max_steps)) unless a number of
+checkpoints S is given. The loop's own condition is one decision for a whole `jax.vmap` batch
+(the caller's), so the iteration count and the segments are too.
+"""
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax import lax
+
+
+def segment_length(max_steps: int, checkpoints: int | None) -> int:
+    """k, the iterations between two checkpoints: ceil(sqrt(max_steps)), or with `checkpoints`
+    given, ceil(max_steps / checkpoints)."""
+    if checkpoints is None:
+        return max(1, math.ceil(math.sqrt(max_steps)))
+    return max(1, math.ceil(max_steps / checkpoints))
+
+
+def _split(leaves, mask):
+    pairs = list(zip(leaves, mask, strict=True))
+    return [x for x, m in pairs if m], [x for x, m in pairs if not m]
+
+
+def _join(on, off, mask):
+    on, off = iter(on), iter(off)
+    return [next(on) if m else next(off) for m in mask]
+
+
+def _zero_cotangents(xs):
+    """Cotangents of inputs that get none: zeros, `float0` for integer and boolean arrays."""
+    return [jnp.zeros_like(x) if eqx.is_inexact_array(x) else np.zeros(np.shape(x), jax.dtypes.float0)
+            for x in xs]
+
+
+def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max_steps: int,
+                            checkpoints: int | None, differentiated: Callable):
+    """`lax.while_loop(cond_fun, body_fun, init)`, at most `max_steps` iterations, reverse-mode
+    differentiable through checkpoints (module docstring).
+
+    `differentiated(init)`: a bool per leaf of the carry (`jax.tree_util.tree_leaves` order),
+    True for the inexact leaves that may carry a derivative; the body's outputs at the other
+    leaves must not depend differentiably on the inputs (their cotangents are dropped). Arrays
+    that `body_fun` closes over (the system's parameters) are differentiated as inputs."""
+    numbers = bool | int | float | np.generic | np.ndarray
+    init = jtu.tree_map(lambda x: jnp.asarray(x) if isinstance(x, numbers) else x, init)
+    leaves, tree = jtu.tree_flatten(init)
+    mask = list(differentiated(init))
+    if len(mask) != len(leaves):
+        raise ValueError(f"checkpointed_while_loop: {len(mask)} flags for {len(leaves)} leaves.")
+    is_array = [eqx.is_array(x) for x in leaves]
+    statics = [x for x, a in zip(leaves, is_array, strict=True) if not a]
+    def arrays(ls):
+        return [x for x, a in zip(ls, is_array, strict=True) if a]
+
+    def with_statics(arrs):
+        return _join(arrs, statics, is_array)
+
+    # The body as a jaxpr whose constants (every array it closes over: the system's parameters,
+    # traced or not) are explicit inputs, differentiated where inexact.
+    closed = jax.make_jaxpr(lambda *arrs: arrays(jtu.tree_leaves(body_fun(jtu.tree_unflatten(
+        tree, with_statics(list(arrs)))))))(*arrays(leaves))
+    consts = list(closed.consts)
+    kmask = [eqx.is_inexact_array(x) for x in consts]
+    k = segment_length(max_steps, checkpoints)
+    num_stores = -(-max_steps // k)
+
+    def step(ls, ks):
+        return with_statics(jax.core.eval_jaxpr(closed.jaxpr, ks, *arrays(ls)))
+
+    def forward(ls, ks, store: bool):
+        buf = [jnp.zeros((num_stores,) + x.shape, x.dtype) for x in arrays(ls)] if store else []
+
+        def cond(s):
+            return cond_fun(jtu.tree_unflatten(tree, s[0])) & (s[1] < max_steps)
+
+        def body(s):
+            ls, i, buf = s
+            if store:
+                cur = arrays(ls)
+                buf = lax.cond(i % k == 0, lambda b: [lax.dynamic_update_index_in_dim(bb, x, i // k, 0)
+                                                      for bb, x in zip(b, cur, strict=True)],
+                               lambda b: b, buf)
+            return step(ls, ks), i + 1, buf
+
+        return lax.while_loop(cond, body, (ls, jnp.array(0), buf))
+
+    # Which of the inexact constants carry a derivative (known when the forward pass is traced):
+    # the others are not differentiated (a tangent there could reach a loop of the body that
+    # reverse mode cannot go through, such as a root search on values without derivatives).
+    perturbed: list[bool] = []
+
+    @jax.custom_vjp
+    def run(d, nd, kd, knd):
+        return arrays(forward(_join(d, nd, mask), _join(kd, knd, kmask), False)[0])
+
+    def run_fwd(d, nd, kd, knd):
+        perturbed[:] = [x.perturbed for x in kd]
+        d, nd, kd, knd = ([x.value for x in xs] for xs in (d, nd, kd, knd))
+        out, n, buf = forward(_join(d, nd, mask), _join(kd, knd, kmask), True)
+        return arrays(out), (buf, n, kd, knd, nd)
+
+    def run_bwd(res, ct):
+        buf, n, kd, knd, nd = res
+        ks = _join(kd, knd, kmask)
+        ct = [jnp.zeros(c.aval.shape, c.aval.dtype) if isinstance(c, jax.custom_derivatives.SymbolicZero)
+              else c for c in ct]
+        ct_d = _split(with_statics(ct), mask)[0]
+        kd_p, kd_u = _split(kd, perturbed)
+
+        def segment(s):
+            j, ct_d, ct_k = s
+            start = with_statics([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
+            length = jnp.minimum(k, n - j * k)
+
+            def recompute(r):
+                t, ls, kept = r
+                kept = [lax.dynamic_update_index_in_dim(b, x, t, 0)
+                        for b, x in zip(kept, arrays(ls), strict=True)]
+                return t + 1, step(ls, ks), kept
+
+            kept = [jnp.zeros((k,) + b.shape[1:], b.dtype) for b in buf]
+            kept = lax.while_loop(lambda r: r[0] < length, recompute, (jnp.array(0), start, kept))[2]
+
+            def back(r):
+                t, ct_d, ct_k = r
+                ls = with_statics([lax.dynamic_index_in_dim(b, length - 1 - t, keepdims=False) for b in kept])
+                ld, lnd = _split(ls, mask)
+
+                def one(ld_, kp_):
+                    ks_ = _join(_join(kp_, kd_u, perturbed), knd, kmask)
+                    return _split(step(_join(ld_, lnd, mask), ks_), mask)[0]
+
+                g_d, g_k = jax.vjp(one, ld, kd_p)[1](ct_d)
+                return t + 1, g_d, [a + b for a, b in zip(g_k, ct_k, strict=True)]
+
+            _, ct_d, ct_k = lax.while_loop(lambda r: r[0] < length, back, (jnp.array(0), ct_d, ct_k))
+            return j - 1, ct_d, ct_k
+
+        first = (n + k - 1) // k - 1
+        zeros_k = [jnp.zeros_like(x) for x in kd_p]
+        _, ct_d, ct_k = lax.while_loop(lambda s: s[0] >= 0, segment, (first, ct_d, zeros_k))
+        ct_k = _join(ct_k, [jnp.zeros_like(x) for x in kd_u], perturbed)
+        return ct_d, _zero_cotangents(nd), ct_k, _zero_cotangents(knd)
+
+    run.defvjp(run_fwd, run_bwd, symbolic_zeros=True)
+    d, nd = _split(leaves, mask)
+    kd, knd = _split(consts, kmask)
+    return jtu.tree_unflatten(tree, with_statics(run(d, nd, kd, knd)))
