@@ -66,6 +66,7 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
         raise ValueError(f"checkpointed_while_loop: {len(mask)} flags for {len(leaves)} leaves.")
     is_array = [eqx.is_array(x) for x in leaves]
     statics = [x for x, a in zip(leaves, is_array, strict=True) if not a]
+
     def arrays(ls):
         return [x for x, a in zip(ls, is_array, strict=True) if a]
 
