@@ -58,3 +58,24 @@ def test_gradient_under_vmap_and_of_a_closed_over_parameter():
 def test_segment_length():
     assert segment_length(100, None) == 10 and segment_length(101, None) == 11
     assert segment_length(100, 3) == 34 and segment_length(5, 10) == 1
+
+
+def test_the_default_and_a_checkpoint_budget_give_the_same_gradient():
+    # The default runs the loop above; a number of checkpoints given runs equinox's
+    # checkpointed loop (a memory budget, diffrax's meaning): two reverse modes, one gradient.
+    import diffrax
+
+    import hybridjax as hj
+
+    ball = hj.examples.bouncing_ball()
+
+    def height(x0, e, adjoint):
+        return hj.simulate(ball, x0, "flight", 0.0, 2.5, {"g": 9.8, "e": e}, adjoint=adjoint,
+                           max_epochs=16).final_state[0]
+
+    x0, e = jnp.array([1.0, 0.3]), jnp.asarray(0.8)
+    grad = jax.jit(jax.grad(height, argnums=(0, 1)), static_argnums=2)
+    own = grad(x0, e, diffrax.RecursiveCheckpointAdjoint())
+    budget = grad(x0, e, diffrax.RecursiveCheckpointAdjoint(checkpoints=16))
+    np.testing.assert_allclose(own[0], budget[0], rtol=1e-12)
+    np.testing.assert_allclose(own[1], budget[1], rtol=1e-12)

@@ -32,9 +32,10 @@ the phase's `lax.cond` (a conditional copies what it passes through).
 
 An epoch is therefore one integration by the solver's own `step`, the controller's
 `adapt_step_size` and dense interpolation, ended by an event. For reverse mode (diffrax's
-`RecursiveCheckpointAdjoint`) the loop is `checkpointed_while_loop`, which differentiates the
-carried fields of `DIFFERENTIABLE_FIELDS` through checkpoints; for `ForwardMode` equinox's `lax`
-while loop, for `DirectAdjoint` its `bounded` one (both modes; a bare `lax.while_loop` cannot be
+`RecursiveCheckpointAdjoint()`) the loop is `checkpointed_while_loop`, which differentiates the
+carried fields of `DIFFERENTIABLE_FIELDS` through checkpoints; with a number of checkpoints
+given, equinox's checkpointed loop, which keeps to it; for `ForwardMode` equinox's `lax` while
+loop, for `DirectAdjoint` its `bounded` one (both modes; a bare `lax.while_loop` cannot be
 reverse-differentiated).
 The guards are sampled on the dense output at constant fractions of the step (for an explicit
 Runge-Kutta solver, constant weights of its stages, `dense_weights`: elementwise arithmetic,
@@ -778,11 +779,14 @@ class Loop:
         # all of it that also keeps the record from being updated in place. Every stage leaves
         # a finished execution as it is, so running the body for it changes nothing.
         cond = lambda c: eqxi.unvmap_any(~c[0].done)  # noqa: E731
-        if self.loop_kind == "checkpointed":
-            st, rec = checkpointed_while_loop(
-                cond, self.body, carry, max_steps=bound, checkpoints=self.checkpoints,
-                differentiated=differentiated_leaves)
+        if self.loop_kind == "checkpointed" and self.checkpoints is None:
+            st, rec = checkpointed_while_loop(cond, self.body, carry, max_steps=bound, checkpoints=None,
+                                              differentiated=differentiated_leaves)
         else:
-            st, rec = eqxi.while_loop(cond, self.body, carry, max_steps=bound, kind=self.loop_kind)
+            # A number of checkpoints given is a memory budget (diffrax's meaning): equinox's
+            # loop keeps to it, recomputing more where it is small.
+            checkpoints = self.checkpoints if self.loop_kind == "checkpointed" else None
+            st, rec = eqxi.while_loop(cond, self.body, carry, max_steps=bound, kind=self.loop_kind,
+                                      checkpoints=checkpoints)
         # The loop's own bound can only be met by executions that are still running.
         return _stop(st, (jnp.array(True), Status.MAX_STEPS)), rec
