@@ -558,7 +558,8 @@ def first_call(res: dict) -> list[str]:
                 "MLIR ones; the process's `XLA_FLAGS` unchanged), on hybridjax and on the lock-step loop. "
                 "*direct call*: the call made outside `jax.jit` as in a notebook (`hj.simulate(...)`, under "
                 "`jax.grad` or `jax.jvp` for the derivatives), which hybridjax compiles itself, for one "
-                "execution without reverse mode with the options above: its first call (tracing, lowering, "
+                "execution with the options above (under `jax.grad`, its forward and backward passes "
+                "as two programs): its first call (tracing, lowering, "
                 "compiling and running) is timed as a whole. See the [FAQ](../faq.md#compile-time).")
     names = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle", "lif": "integrate-and-fire"}
     for call in res["calls"]:

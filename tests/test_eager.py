@@ -131,6 +131,9 @@ TRANSFORMED = {
         lambda x0: jax.jvp(lambda x: final_state(x, diffrax.ForwardMode()), (x0,), (TANGENT,))[1],
         lambda x0: closed_form_jacobian(x0) @ np.asarray(TANGENT)),
     "jacfwd, default adjoint": (jax.jacfwd(final_state), closed_form_jacobian),
+    # Reverse mode alone runs its own forward and backward programs (compiled with XLA options
+    # of their own); jax.jacrev batches the backward one.
+    "jacrev": (jax.jacrev(final_state), closed_form_jacobian),
     "vmap": (lambda x0: jax.vmap(final_state)(jnp.stack([x0, x0 + 0.2])),
              lambda x0: expected(np.stack([x0, x0 + 0.2]), 9.8, 0.8, 1.5)),
 }
@@ -173,19 +176,42 @@ def test_forward_mode_through_a_jit_of_the_default_adjoint_names_the_fix():
 
 
 def test_the_compiler_options_of_a_direct_call_follow_its_executions_derivatives_and_backend():
-    # XLA:CPU's own fusion emitters for one execution without reverse mode on the CPU; XLA's
-    # defaults for a batch, a reverse-mode derivative, or another backend.
+    # XLA:CPU's own fusion emitters for one execution on the CPU, undifferentiated, in forward
+    # mode, or in reverse mode alone; XLA's defaults for a batch, a reverse-mode derivative
+    # inside another derivative, or another backend.
     from hybridjax._solve.eager import FAST_COMPILE_CPU, eager_compiler_options
 
     assert FAST_COMPILE_CPU == {"xla_cpu_use_fusion_emitters": False}
     for modes in (frozenset(), frozenset({"forward"})):
         assert eager_compiler_options(True, modes, False, "cpu") == FAST_COMPILE_CPU
+    assert eager_compiler_options(True, frozenset({"reverse"}), False, "cpu", reverse_only=True) == FAST_COMPILE_CPU
     for one, modes, batched, backend in [(False, frozenset(), False, "cpu"),
                                          (True, frozenset(), True, "cpu"),
                                          (True, frozenset({"reverse"}), False, "cpu"),
                                          (True, frozenset({"forward", "reverse"}), False, "cpu"),
                                          (True, frozenset(), False, "gpu")]:
         assert eager_compiler_options(one, modes, batched, backend) == {}
+
+
+def test_reverse_mode_alone_is_one_linearize_trace_at_the_call():
+    from hybridjax._core.transforms import reverse_only_at_call
+
+    seen = []
+
+    def f(x):
+        seen.append(reverse_only_at_call())
+        return jnp.sum(jnp.sin(x))
+
+    x = jnp.ones(2)
+    jax.grad(f)(x)
+    jax.vjp(f, x)
+    jax.jacrev(f)(x)
+    jax.jit(jax.grad(f))(x)  # the traces above the jit's (the call is not eager there)
+    jax.vmap(jax.grad(f))(jnp.ones((3, 2)))
+    jax.grad(lambda y: jax.grad(f)(y).sum())(x)  # both calls: inner under two linearize traces
+    jax.hessian(f)(x)
+    jax.jvp(f, (x,), (x,))
+    assert seen == [True, True, True, True, False, False, False, False]
 
 
 def test_a_batch_is_seen_at_the_call_only_above_the_nearest_jit():

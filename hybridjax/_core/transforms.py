@@ -76,6 +76,12 @@ def eager_at_top() -> bool:
     return _chain()[1] == "EvalTrace"
 
 
+def reverse_only_at_call() -> bool:
+    """Whether exactly one linearize trace (`jax.grad`, `jax.vjp`, `jax.jacrev`), and no other
+    JVP, linearize or batching trace, lies between the call and the nearest other trace."""
+    return _chain()[0] == ("LinearizeTrace",)
+
+
 def batched_at_call() -> bool:
     """Whether a batching trace (`jax.vmap`, and the batches of `jax.jacfwd` and `jax.jacrev`)
     lies between the call and the nearest other trace: for a call made outside `jax.jit`

@@ -6,11 +6,11 @@ trace of the body and one of its VJP, where a loop that works out which leaves a
 which cotangents are symbolic zeros traces the body's JVP and VJP again for each question.
 
 Checkpoints every k iterations: the forward pass stores the carry at iterations 0, k, 2k, ...
-(S = ceil(max_steps / k) stores); the backward pass takes the segments from the last to the
-first, recomputes a segment's at most k iterations from its checkpoint (keeping each carry), and
-pulls the cotangent back through them one at a time with `jax.vjp` of the body. Every iteration
-is recomputed once; the memory is S + k carries, k = ceil(sqrt(max_steps)) unless a number of
-checkpoints S is given. The loop's own condition is one decision for a whole `jax.vmap` batch
+(S = ceil(max_steps / k) stores, one flat buffer per dtype); the backward pass takes the
+segments from the last to the first, recomputes a segment's at most k iterations from its
+checkpoint (keeping each carry), and pulls the cotangent back through them one at a time with
+`jax.vjp` of the body. Every iteration is recomputed once; the memory is S + k carries,
+k = ceil(sqrt(max_steps)) unless a number of checkpoints S is given. The loop's own condition is one decision for a whole `jax.vmap` batch
 (the caller's), so the iteration count and the segments are too.
 """
 
@@ -41,6 +41,37 @@ def _split(leaves, mask):
 def _join(on, off, mask):
     on, off = iter(on), iter(off)
     return [next(on) if m else next(off) for m in mask]
+
+
+class _Packing:
+    """The carried arrays laid out as one flat vector per dtype, so that storing a checkpoint
+    is one indexed write per dtype rather than one per leaf (three against some sixty for the
+    loop's state, each a kernel of its own for XLA). The backward pass keeps a segment's
+    recomputed carries leaf by leaf: packed there, every iteration would copy the whole carry
+    once more (`jax.vmap(jax.grad(...))` over 1,000 balls half as slow again)."""
+
+    def __init__(self, arrays):
+        self.dtypes = list(dict.fromkeys(jnp.result_type(x) for x in arrays))
+        self.layout = []  # per array: (group, start, size, shape)
+        used = dict.fromkeys(self.dtypes, 0)
+        for x in arrays:
+            d, shape = jnp.result_type(x), jnp.shape(x)
+            size = math.prod(shape)
+            self.layout.append((self.dtypes.index(d), used[d], size, shape))
+            used[d] += size
+        self.sizes = [used[d] for d in self.dtypes]
+
+    def pack(self, arrays):
+        parts = [[] for _ in self.dtypes]
+        for x, (g, _, _, _) in zip(arrays, self.layout, strict=True):
+            parts[g].append(jnp.reshape(x, (-1,)))
+        return [jnp.concatenate(p) for p in parts]
+
+    def unpack(self, packed):
+        return [jnp.reshape(packed[g][a:a + n], shape) for g, a, n, shape in self.layout]
+
+    def buffers(self, length: int):
+        return [jnp.zeros((length, n), d) for n, d in zip(self.sizes, self.dtypes, strict=True)]
 
 
 def _zero_cotangents(xs):
@@ -81,12 +112,13 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
     kmask = [eqx.is_inexact_array(x) for x in consts]
     k = segment_length(max_steps, checkpoints)
     num_stores = -(-max_steps // k)
+    packing = _Packing(arrays(leaves))
 
     def step(ls, ks):
         return with_statics(jax.core.eval_jaxpr(closed.jaxpr, ks, *arrays(ls)))
 
     def forward(ls, ks, store: bool):
-        buf = [jnp.zeros((num_stores,) + x.shape, x.dtype) for x in arrays(ls)] if store else []
+        buf = packing.buffers(num_stores) if store else []
 
         def cond(s):
             return cond_fun(jtu.tree_unflatten(tree, s[0])) & (s[1] < max_steps)
@@ -94,10 +126,11 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
         def body(s):
             ls, i, buf = s
             if store:
-                cur = arrays(ls)
-                buf = lax.cond(i % k == 0, lambda b: [lax.dynamic_update_index_in_dim(bb, x, i // k, 0)
-                                                      for bb, x in zip(b, cur, strict=True)],
-                               lambda b: b, buf)
+                def write(b, cur):
+                    return [lax.dynamic_update_index_in_dim(bb, x, i // k, 0)
+                            for bb, x in zip(b, packing.pack(cur), strict=True)]
+
+                buf = lax.cond(i % k == 0, write, lambda b, cur: b, buf, arrays(ls))
             return step(ls, ks), i + 1, buf
 
         return lax.while_loop(cond, body, (ls, jnp.array(0), buf))
@@ -127,7 +160,8 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
 
         def segment(s):
             j, ct_d, ct_k = s
-            start = with_statics([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
+            start = packing.unpack([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
+            start = with_statics(start)
             length = jnp.minimum(k, n - j * k)
 
             def recompute(r):
@@ -136,7 +170,7 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
                         for b, x in zip(kept, arrays(ls), strict=True)]
                 return t + 1, step(ls, ks), kept
 
-            kept = [jnp.zeros((k,) + b.shape[1:], b.dtype) for b in buf]
+            kept = [jnp.zeros((k,) + x.shape, x.dtype) for x in arrays(start)]
             kept = lax.while_loop(lambda r: r[0] < length, recompute, (jnp.array(0), start, kept))[2]
 
             def back(r):

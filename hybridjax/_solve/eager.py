@@ -22,14 +22,20 @@ the program is traced knowing them: under forward mode the default adjoint is re
 forward mode can go through (`hybridjax._core.transforms.adjoint_for`), and `simulate_batch` picks
 its defaults for a differentiated call.
 
-A call that runs one execution (`simulate`, not under `jax.vmap`), without reverse-mode
-derivatives, on the CPU, is compiled with XLA:CPU's own fusion emitters instead of its MLIR
-fusion emitters (`eager_compiler_options`): most of such a program's compile time is spent
-compiling its kernels one by one, which these emitters do in about half the time, and a single
-execution runs as fast. Batches keep the default, which runs them faster; reverse mode keeps it
-too (its programs gain less and some run slower). The results are the same to rounding. A
-jaxlib whose XLA does not know the option runs the call with the defaults
-(`with_default_options_if_refused`).
+A call that runs one execution (`simulate`, not under `jax.vmap`), on the CPU, is compiled
+with XLA:CPU's own fusion emitters instead of its MLIR fusion emitters
+(`eager_compiler_options`): most of such a program's compile time is spent compiling its
+kernels one by one, which these emitters do in one half to two thirds of the time, and a
+single execution runs as fast (its reverse-mode derivative up to a tenth slower, against the
+seconds its first call saves). Batches keep the default, which runs them faster. JAX accepts
+a program's own options only on a program it compiles as called, not on one it records while
+differentiating, so under one reverse-mode derivative (`jax.grad`, `jax.vjp`, `jax.jacrev`)
+the call is a custom VJP whose forward pass (the solve with `jax.vjp`'s residuals) and
+backward pass are two such programs (`_reverse_with_options`); under forward mode JAX
+differentiates the compiled call itself, and a reverse-mode derivative nested in another
+derivative (`jax.hessian`, `jax.grad` of `jax.grad`) keeps the defaults. The results are
+the same to rounding. A jaxlib whose XLA does not know the option runs the call with the
+defaults (`with_default_options_if_refused`).
 
 Left to the plain call: calls inside `jax.jit` (or `lax.scan`, `jax.checkpoint`, ...), which
 compile with their caller; arguments with an unhashable non-array leaf; and calls that need a
@@ -55,6 +61,7 @@ from .._core.transforms import (
     derivative_modes,
     eager_at_top,
     naming_the_forward_mode_fix,
+    reverse_only_at_call,
 )
 from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
 from .prepare import SHORTHANDS, solve_options
@@ -121,18 +128,60 @@ def _options_as_object(bound: inspect.BoundArguments, where: str) -> None:
 FAST_COMPILE_CPU = {"xla_cpu_use_fusion_emitters": False}
 
 
-def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool, backend: str) -> dict:
+def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool, backend: str,
+                           reverse_only: bool = False) -> dict:
     """The XLA compiler options of the program compiled for a call made outside `jax.jit`:
     `FAST_COMPILE_CPU` for a call that runs one execution (`one_execution`, and not `batched`
-    under `jax.vmap`) with no reverse-mode derivative in `modes`, on the `"cpu"` backend; else
-    none (XLA's defaults).
+    under `jax.vmap`) on the `"cpu"` backend, with no reverse-mode derivative in `modes` or
+    with reverse mode alone (`reverse_only`: one linearize trace at the call); else none
+    (XLA's defaults).
 
-    One execution's forward and forward-mode programs compile in one half to two thirds of the
-    XLA time with them and run as fast (docs: First call); batches run slower with them (docs:
-    Compile time), and reverse-mode programs gain less, some running slower."""
-    if one_execution and not batched and "reverse" not in modes and backend == "cpu":
+    One execution's programs compile in one half to two thirds of the XLA time with them (docs:
+    First call); forward and forward-mode programs run as fast, reverse-mode ones up to a tenth
+    slower; batches run slower with them (docs: Compile time)."""
+    if one_execution and not batched and backend == "cpu" and ("reverse" not in modes or reverse_only):
         return dict(FAST_COMPILE_CPU)
     return {}
+
+
+def _reverse_with_options(traced: Callable, primal: Callable, options: dict) -> Callable:
+    """`traced(args, kwargs, context)` under one reverse-mode derivative, as a custom VJP whose
+    two passes are programs compiled with the XLA `options`: the forward pass runs `traced`
+    under `jax.vjp` with respect to the perturbed arrays and returns the result and the
+    pullback (its residuals are arrays of the program's output); the backward pass applies the
+    pullback to the cotangent. JAX calls both on concrete values, outside any staging trace,
+    where a program may have options of its own (it refuses them on the program it records
+    while differentiating a compiled call). `primal`: the call's compiled program, for JAX's
+    undifferentiated evaluation."""
+
+    def forward(diff, nondiff, context):
+        def split(d):
+            return eqx.partition(traced(*eqx.combine(d, nondiff), context), eqx.is_inexact_array)
+
+        out_diff, pullback, out_rest = jax.vjp(split, diff, has_aux=True)
+        return eqx.combine(out_diff, out_rest), pullback, out_diff
+
+    forward = eqx.filter_jit(forward, compiler_options=options)
+    backward = eqx.filter_jit(lambda pullback, ct: pullback(ct)[0], compiler_options=options)
+
+    @eqx.filter_custom_vjp
+    def run(inputs, context):
+        return primal(*inputs, context)
+
+    @run.def_fwd
+    def _(perturbed, inputs, context):
+        out, pullback, out_diff = forward(*eqx.partition(inputs, perturbed), context)
+        return out, (pullback, out_diff)
+
+    @run.def_bwd
+    def _(residuals, grad_obj, perturbed, inputs, context):
+        pullback, out_diff = residuals
+        # A cotangent for every differentiable output: zeros where the caller's is symbolic.
+        ct = jtu.tree_map(lambda o, g: None if o is None else (jnp.zeros_like(o) if g is None else g),
+                          out_diff, grad_obj, is_leaf=lambda x: x is None)
+        return backward(pullback, ct)
+
+    return lambda args, kwargs, context: run((args, kwargs), context)
 
 
 # Whether this process's XLA refused an option of `FAST_COMPILE_CPU` (a jaxlib without it).
@@ -180,6 +229,7 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
         # One compiled wrapper per set of compiler options (a jit's options are fixed).
         compiled = {False: eqx.filter_jit(traced),
                     True: eqx.filter_jit(traced, compiler_options=FAST_COMPILE_CPU)}
+        reverse_compiled = _reverse_with_options(traced, compiled[True], FAST_COMPILE_CPU)
 
         @functools.wraps(fn)
         def call(*args, **kwargs):
@@ -207,13 +257,15 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
             if checked:
                 check_time_span(t0, t1, fn.__name__, given=(t0, t1))
             try:
+                reverse_only = reverse_only_at_call()
                 fast = bool(eager_compiler_options(one_execution, modes, batched_at_call(),
-                                                   jax.default_backend()))
+                                                   jax.default_backend(), reverse_only))
                 # JAX differentiates the compiled call here, where a forward-mode derivative
                 # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
                 with naming_the_forward_mode_fix():
                     if fast:
-                        return with_default_options_if_refused(compiled[True], compiled[False], call_args,
+                        with_options = reverse_compiled if "reverse" in modes else compiled[True]
+                        return with_default_options_if_refused(with_options, compiled[False], call_args,
                                                                call_kwargs, (modes, checked))
                     return compiled[False](call_args, call_kwargs, (modes, checked))
             except _NEEDS_CONCRETE:
