@@ -10,8 +10,9 @@ Checkpoints every k iterations: the forward pass stores the carry at iterations 
 segments from the last to the first, recomputes a segment's at most k iterations from its
 checkpoint (keeping each carry), and pulls the cotangent back through them one at a time with
 `jax.vjp` of the body. Every iteration is recomputed once; the memory is S + k carries,
-k = ceil(sqrt(max_steps)) unless a number of checkpoints S is given. The loop's own condition is one decision for a whole `jax.vmap` batch
-(the caller's), so the iteration count and the segments are too.
+k = ceil(sqrt(max_steps)) unless a number of checkpoints S is given. The loop's own condition
+is one decision for a whole `jax.vmap` batch (the caller's), so the iteration count and the
+segments are too.
 """
 
 import math
