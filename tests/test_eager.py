@@ -208,7 +208,7 @@ def test_reverse_mode_alone_is_one_linearize_trace_at_the_call():
     jax.jacrev(f)(x)
     jax.jit(jax.grad(f))(x)  # the traces above the jit's (the call is not eager there)
     jax.vmap(jax.grad(f))(jnp.ones((3, 2)))
-    jax.grad(lambda y: jax.grad(f)(y).sum())(x)  # both calls: inner under two linearize traces
+    jax.grad(lambda y: jax.grad(f)(y).sum())(x)  # f traced once, under two linearize traces
     jax.hessian(f)(x)
     jax.jvp(f, (x,), (x,))
     assert seen == [True, True, True, True, False, False, False, False]
