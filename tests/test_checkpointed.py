@@ -22,10 +22,10 @@ def _body(a):
     return body
 
 
-def _loop(x0, a, checkpoints):
+def _loop(x0, a, checkpoints, keep="residuals"):
     c = checkpointed_while_loop(lambda c: ~c[3], _body(a), (x0, jnp.zeros(()), jnp.array(0), jnp.array(False)),
                                 max_steps=MAX_STEPS, checkpoints=checkpoints,
-                                differentiated=lambda carry: [True, False, False, False])
+                                differentiated=lambda carry: [True, False, False, False], keep=keep)
     return c[0] * c[0] + c[1]
 
 
@@ -38,21 +38,28 @@ def _scan(x0, a):
     return c[0] * c[0] + c[1]
 
 
+@pytest.mark.parametrize("keep", ["residuals", "carries"])
 @pytest.mark.parametrize("checkpoints", [None, 1, 3, MAX_STEPS])
-def test_gradient_equals_reverse_mode_through_the_unrolled_loop(checkpoints):
+def test_gradient_equals_reverse_mode_through_the_unrolled_loop(checkpoints, keep):
     x0, a = jnp.asarray(0.2), jnp.asarray(1.3)
-    got = jax.jit(jax.grad(_loop, argnums=(0, 1)), static_argnums=2)(x0, a, checkpoints)
+    got = jax.jit(jax.grad(_loop, argnums=(0, 1)), static_argnums=(2, 3))(x0, a, checkpoints, keep)
     want = jax.jit(jax.grad(_scan, argnums=(0, 1)))(x0, a)
     np.testing.assert_allclose(got, want, rtol=1e-13)
     assert float(_loop(x0, a, checkpoints)) == pytest.approx(float(_scan(x0, a)), rel=1e-15)
 
 
-def test_gradient_under_vmap_and_of_a_closed_over_parameter():
+@pytest.mark.parametrize("keep", ["residuals", "carries"])
+def test_gradient_under_vmap_and_of_a_closed_over_parameter(keep):
     x0 = jnp.linspace(-0.5, 2.5, 7)
     a = jnp.asarray(0.9)
-    got = jax.jit(jax.grad(lambda a: jnp.sum(jax.vmap(lambda x: _loop(x, a, None))(x0))))(a)
+    got = jax.jit(jax.grad(lambda a: jnp.sum(jax.vmap(lambda x: _loop(x, a, None, keep))(x0))))(a)
     want = jax.jit(jax.grad(lambda a: jnp.sum(jax.vmap(lambda x: _scan(x, a))(x0))))(a)
     np.testing.assert_allclose(got, want, rtol=1e-13)
+
+
+def test_an_unknown_keep_is_refused():
+    with pytest.raises(ValueError, match="keep must be 'residuals' or 'carries'"):
+        _loop(jnp.asarray(0.2), jnp.asarray(1.3), None, keep="states")
 
 
 def test_segment_length():

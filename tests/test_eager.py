@@ -231,6 +231,23 @@ def test_a_batch_is_seen_at_the_call_only_above_the_nearest_jit():
     assert seen == [False, True, True, False]
 
 
+def test_a_batch_at_a_direct_call_is_seen_inside_its_compiled_program():
+    # The per-execution loop chooses what its reverse mode keeps by it (`runs_batched`); inside
+    # the compiled program the call's own batching trace is no longer visible.
+    from hybridjax._core.transforms import runs_batched
+    from hybridjax._solve.eager import compiled_when_eager
+
+    @compiled_when_eager(lambda *args, **kwargs: None)
+    def call(x0, t0, t1, adjoint=diffrax.RecursiveCheckpointAdjoint(), options=None):
+        return x0 * (1.0 + runs_batched())  # the slope says what the program saw
+
+    slope = jax.grad(lambda x: call(x, 0.0, 1.0))
+    assert float(slope(jnp.asarray(0.5))) == 1.0
+    np.testing.assert_array_equal(jax.vmap(slope)(jnp.ones(3)), 2.0)
+    np.testing.assert_array_equal(jax.vmap(lambda x: call(x, 0.0, 1.0))(jnp.ones(3)), 2.0)
+    assert float(call(jnp.asarray(1.0), 0.0, 1.0)) == 1.0
+
+
 def test_an_option_xla_does_not_know_falls_back_to_the_defaults(monkeypatch):
     # A jaxlib whose XLA lacks the option: the direct call runs with XLA's defaults instead.
     from hybridjax._solve import eager

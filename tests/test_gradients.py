@@ -150,7 +150,7 @@ def test_the_loop_starts_with_the_derivatives_its_body_gives(engine):
         found.append((jax.tree_util.tree_leaves(perturb_val), jax.tree_util.tree_leaves(out)))
         return out
 
-    def through_equinox(cond, body, carry, *, max_steps, checkpoints, differentiated):
+    def through_equinox(cond, body, carry, *, max_steps, checkpoints, differentiated, keep):
         listed.append(differentiated(carry))
         return eqxi.while_loop(cond, body, carry, max_steps=max_steps, kind="checkpointed")
 

@@ -35,6 +35,8 @@ _DERIVATIVE = {"JVPTrace": "forward", "LinearizeTrace": "reverse", "BatchTrace":
 # call's own traces lie beneath the staging trace of its compiled program.
 _CALL_MODES: contextvars.ContextVar[frozenset | None] = contextvars.ContextVar("hybridjax_call_modes",
                                                                               default=None)
+# Whether that call runs under a batching trace (`jax.vmap`).
+_CALL_BATCHED: contextvars.ContextVar[bool] = contextvars.ContextVar("hybridjax_call_batched", default=False)
 
 FORWARD_MODE_HINT = (
     "Forward-mode differentiation (jax.jvp, jax.jacfwd) of hybridjax.simulate / simulate_batch "
@@ -89,6 +91,13 @@ def batched_at_call() -> bool:
     return "BatchTrace" in _chain()[0]
 
 
+def runs_batched() -> bool:
+    """Whether the call runs as part of a batch: a batching trace at the call
+    (`batched_at_call`), or at the call whose compiled program is being traced. (A batch taken
+    outside a `jax.jit` inside which the call is made is not seen.)"""
+    return batched_at_call() or _CALL_BATCHED.get()
+
+
 def derivative_modes() -> frozenset:
     """The derivatives taken through the call: "forward" (`jax.jvp`, `jax.jacfwd`), "reverse"
     (`jax.grad`, `jax.vjp`, `jax.jacrev`), both (`jax.hessian`) or none."""
@@ -97,14 +106,16 @@ def derivative_modes() -> frozenset:
 
 
 @contextlib.contextmanager
-def compiled_call(modes: frozenset):
+def compiled_call(modes: frozenset, batched: bool = False):
     """Within: tracing the compiled program of a call made under the derivative traces `modes`
-    (`derivative_modes()` and `compiled_call_modes()` say so)."""
-    token = _CALL_MODES.set(modes)
+    (`derivative_modes()` and `compiled_call_modes()` say so), and under a batching trace
+    where `batched` (`runs_batched()` says so)."""
+    token, token_b = _CALL_MODES.set(modes), _CALL_BATCHED.set(batched)
     try:
         yield
     finally:
         _CALL_MODES.reset(token)
+        _CALL_BATCHED.reset(token_b)
 
 
 def compiled_call_modes() -> frozenset:

@@ -8,15 +8,26 @@ which cotangents are symbolic zeros traces the body's JVP and VJP again for each
 Checkpoints every k iterations: the forward pass stores the carry at iterations 0, k, 2k, ...
 (S = ceil(max_steps / k) stores, one flat buffer per dtype); the backward pass takes the
 segments from the last to the first, recomputes a segment's at most k iterations from its
-checkpoint (keeping each carry), and pulls the cotangent back through them one at a time with
-`jax.vjp` of the body. Every iteration is recomputed once; the memory is S + k carries,
-k = ceil(sqrt(max_steps)) unless a number of checkpoints S is given. The loop's own condition
-is one decision for a whole `jax.vmap` batch (the caller's), so the iteration count and the
-segments are too.
+checkpoint, and pulls the cotangent back through them one at a time. Every iteration is
+recomputed once; the memory is S + k carries (or residuals), k = ceil(sqrt(max_steps)) unless a
+number of checkpoints S is given. The loop's own condition is one decision for a whole
+`jax.vmap` batch (the caller's), so the iteration count and the segments are too.
+
+What the recomputation keeps (`keep`):
+
+- `"residuals"`: each iteration's linearisation, `jax.vjp` of the body, keeping the pullback's
+  residuals; the backward pass applies the pullbacks. The body's code appears twice in the
+  program (the forward pass, the linearisation) and its transpose once: the ball's reverse
+  program has a tenth fewer fusions (836 against 927) and compiles in about a tenth less time.
+- `"carries"`: each carry; the backward pass linearises the body again at each iteration and
+  transposes it (the body three times). Under `jax.vmap` it runs faster, measured:
+  `jax.vmap(jax.grad(...))` over 1,000 balls takes about 1.15 times as long keeping residuals
+  (164 arrays per iteration against the carry's 59).
 """
 
 import math
 from collections.abc import Callable
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -82,14 +93,18 @@ def _zero_cotangents(xs):
 
 
 def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max_steps: int,
-                            checkpoints: int | None, differentiated: Callable):
+                            checkpoints: int | None, differentiated: Callable,
+                            keep: Literal["residuals", "carries"] = "residuals"):
     """`lax.while_loop(cond_fun, body_fun, init)`, at most `max_steps` iterations, reverse-mode
     differentiable through checkpoints (module docstring).
 
     `differentiated(init)`: a bool per leaf of the carry (`jax.tree_util.tree_leaves` order),
     True for the inexact leaves that may carry a derivative; the body's outputs at the other
     leaves must not depend differentiably on the inputs (their cotangents are dropped). Arrays
-    that `body_fun` closes over (the system's parameters) are differentiated as inputs."""
+    that `body_fun` closes over (the system's parameters) are differentiated as inputs. `keep`:
+    what the backward pass's recomputation keeps of each iteration (module docstring)."""
+    if keep not in ("residuals", "carries"):
+        raise ValueError(f"checkpointed_while_loop: keep must be 'residuals' or 'carries', not {keep!r}.")
     numbers = bool | int | float | np.generic | np.ndarray
     init = jtu.tree_map(lambda x: jnp.asarray(x) if isinstance(x, numbers) else x, init)
     leaves, tree = jtu.tree_flatten(init)
@@ -159,31 +174,63 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
         ct_d = _split(with_statics(ct), mask)[0]
         kd_p, kd_u = _split(kd, perturbed)
 
+        amask = _split(mask, is_array)[0]  # `mask` on the carry's arrays
+        shapes = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in arrays(leaves)]
+
+        def one(ld_, kp_, lnd_):
+            """The body on the carry's arrays: (differentiated next carry, the rest)."""
+            ks_ = _join(_join(kp_, kd_u, perturbed), knd, kmask)
+            return _split(arrays(step(with_statics(_join(ld_, lnd_, amask)), ks_)), amask)
+
+        if keep == "residuals":
+            # The body's linearisation, traced once: the next carry and the pullback's residuals.
+            pullback_tree = []
+
+            def linearised(ld_, kp_, lnd_):
+                out, pullback, aux = jax.vjp(lambda a, b: one(a, b, lnd_), ld_, kp_, has_aux=True)
+                residuals, tree_ = jtu.tree_flatten(pullback)
+                pullback_tree.append(tree_)
+                return _join(out, aux, amask), residuals
+
+            ld_shapes, lnd_shapes = _split(shapes, amask)
+            lin = jax.make_jaxpr(linearised)(ld_shapes, kd_p, lnd_shapes)
+            kept_avals = lin.out_avals[len(amask):]
+
+            def advance(ls):
+                ld_, lnd_ = _split(ls, amask)
+                flat = jax.core.eval_jaxpr(lin.jaxpr, lin.consts, *ld_, *kd_p, *lnd_)
+                return flat[:len(amask)], flat[len(amask):]
+
+            def pull_back(kept_, ct_d):
+                return jtu.tree_unflatten(pullback_tree[0], kept_)(ct_d)
+        else:
+            kept_avals = shapes
+
+            def advance(ls):
+                return arrays(step(with_statics(ls), ks)), ls
+
+            def pull_back(kept_, ct_d):
+                ld_, lnd_ = _split(kept_, amask)
+                return jax.vjp(lambda a, b: one(a, b, lnd_)[0], ld_, kd_p)[1](ct_d)
+
         def segment(s):
             j, ct_d, ct_k = s
             start = packing.unpack([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
-            start = with_statics(start)
             length = jnp.minimum(k, n - j * k)
 
             def recompute(r):
                 t, ls, kept = r
-                kept = [lax.dynamic_update_index_in_dim(b, x, t, 0)
-                        for b, x in zip(kept, arrays(ls), strict=True)]
-                return t + 1, step(ls, ks), kept
+                ls, item = advance(ls)
+                kept = [lax.dynamic_update_index_in_dim(b, x, t, 0) for b, x in zip(kept, item, strict=True)]
+                return t + 1, ls, kept
 
-            kept = [jnp.zeros((k,) + x.shape, x.dtype) for x in arrays(start)]
+            kept = [jnp.zeros((k,) + a.shape, a.dtype) for a in kept_avals]
             kept = lax.while_loop(lambda r: r[0] < length, recompute, (jnp.array(0), start, kept))[2]
 
             def back(r):
                 t, ct_d, ct_k = r
-                ls = with_statics([lax.dynamic_index_in_dim(b, length - 1 - t, keepdims=False) for b in kept])
-                ld, lnd = _split(ls, mask)
-
-                def one(ld_, kp_):
-                    ks_ = _join(_join(kp_, kd_u, perturbed), knd, kmask)
-                    return _split(step(_join(ld_, lnd, mask), ks_), mask)[0]
-
-                g_d, g_k = jax.vjp(one, ld, kd_p)[1](ct_d)
+                item = [lax.dynamic_index_in_dim(b, length - 1 - t, keepdims=False) for b in kept]
+                g_d, g_k = pull_back(item, ct_d)
                 return t + 1, g_d, [a + b for a, b in zip(g_k, ct_k, strict=True)]
 
             _, ct_d, ct_k = lax.while_loop(lambda r: r[0] < length, back, (jnp.array(0), ct_d, ct_k))

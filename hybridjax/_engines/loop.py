@@ -63,6 +63,7 @@ import numpy as np
 from jax import lax
 
 from .._core.status import Status
+from .._core.transforms import runs_batched
 from .._definition.kernels import Kernels, mask_inputs
 from .._rules.detect import dip_candidates, dip_filter, first_crossings, needs_location
 from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
@@ -780,8 +781,11 @@ class Loop:
         # a finished execution as it is, so running the body for it changes nothing.
         cond = lambda c: eqxi.unvmap_any(~c[0].done)  # noqa: E731
         if self.loop_kind == "checkpointed" and self.checkpoints is None:
+            # One execution keeps each iteration's linearisation (a smaller program, compiled
+            # sooner); a batch keeps its carries, which runs faster under `jax.vmap`.
             st, rec = checkpointed_while_loop(cond, self.body, carry, max_steps=bound, checkpoints=None,
-                                              differentiated=differentiated_leaves)
+                                              differentiated=differentiated_leaves,
+                                              keep="carries" if runs_batched() else "residuals")
         else:
             # A number of checkpoints given is a memory budget (diffrax's meaning): equinox's
             # loop keeps to it, recomputing more where it is small.

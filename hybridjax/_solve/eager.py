@@ -218,10 +218,10 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
         signature = inspect.signature(fn)
 
         def traced(args, kwargs, context):
-            modes, checked = context
+            modes, checked, batched = context
             token = _TIME_SPAN_CHECKED.set(_Ticket() if checked else None)
             try:
-                with compiled_call(modes):
+                with compiled_call(modes, batched):
                     return fn(*_unwrap_scalars(args), **_unwrap_scalars(kwargs))
             finally:
                 _TIME_SPAN_CHECKED.reset(token)
@@ -257,8 +257,8 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
             if checked:
                 check_time_span(t0, t1, fn.__name__, given=(t0, t1))
             try:
-                reverse_only = reverse_only_at_call()
-                fast = bool(eager_compiler_options(one_execution, modes, batched_at_call(),
+                reverse_only, batched = reverse_only_at_call(), batched_at_call()
+                fast = bool(eager_compiler_options(one_execution, modes, batched,
                                                    jax.default_backend(), reverse_only))
                 # JAX differentiates the compiled call here, where a forward-mode derivative
                 # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
@@ -266,8 +266,8 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                     if fast:
                         with_options = reverse_compiled if "reverse" in modes else compiled[True]
                         return with_default_options_if_refused(with_options, compiled[False], call_args,
-                                                               call_kwargs, (modes, checked))
-                    return compiled[False](call_args, call_kwargs, (modes, checked))
+                                                               call_kwargs, (modes, checked, batched))
+                    return compiled[False](call_args, call_kwargs, (modes, checked, batched))
             except _NEEDS_CONCRETE:
                 pass
             return fn(*bound.args, **bound.kwargs)
