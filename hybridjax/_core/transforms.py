@@ -7,7 +7,7 @@ innermost first: `jax.jvp` and `jax.jacfwd` add a JVP trace, `jax.grad`, `jax.vj
 staging trace says nothing about the program it records: JAX keeps that program and reuses it
 under other transformations, so only the traces above the nearest staging trace are read here.
 
-Two uses:
+Three uses:
 
 - a call whose chain reaches JAX's eager evaluation with only JVP, linearize and batching
   traces on the way ("eager at the top") can run as a compiled program that JAX transforms,
@@ -15,7 +15,9 @@ Two uses:
 - a forward-mode derivative needs a loop that JAX can differentiate forwards: the default
   `RecursiveCheckpointAdjoint`'s checkpointed loop is a `jax.custom_vjp`, which only reverse
   mode can go through, so under a JVP trace (and no linearize trace) it is replaced by
-  `ForwardMode()` (`adjoint_for`).
+  `ForwardMode()` (`adjoint_for`);
+- the per-execution loop's reverse mode keeps each iteration's residuals for one execution and
+  its carries for a batch, which runs faster under `jax.vmap` (`runs_batched`).
 
 The current trace is read from `jax._src.core.trace_ctx` (private: JAX's "stackless" tracing,
 where each trace knows its parent). Without it every call counts as staged, with no derivative

@@ -17,10 +17,12 @@ This holds under `jax.grad`, `jax.vjp`, `jax.jacrev`, `jax.jvp`, `jax.jacfwd`, `
 their compositions, made outside `jax.jit` (`hybridjax._core.transforms.eager_at_top`): JAX
 differentiates and batches the compiled call (`jit` composes with them), and keeps what it
 compiles for the derivative or the batch, so a repeated `jax.grad` with new values compiles
-nothing. The derivatives taken at the call (forward, reverse) are part of the cache key, and
-the program is traced knowing them: under forward mode the default adjoint is replaced by one
-forward mode can go through (`hybridjax._core.transforms.adjoint_for`), and `simulate_batch` picks
-its defaults for a differentiated call.
+nothing. The derivatives taken at the call (forward, reverse) and whether it runs under
+`jax.vmap` are part of the cache key, and the program is traced knowing them: under forward mode
+the default adjoint is replaced by one forward mode can go through
+(`hybridjax._core.transforms.adjoint_for`), `simulate_batch` picks its defaults for a
+differentiated call, and the per-execution loop's reverse mode what it keeps for a batch
+(`hybridjax._core.transforms.runs_batched`).
 
 A call that runs one execution (`simulate`, not under `jax.vmap`), on the CPU, is compiled
 with XLA:CPU's own fusion emitters instead of its MLIR fusion emitters
