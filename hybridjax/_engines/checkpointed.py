@@ -36,6 +36,8 @@ import jax.tree_util as jtu
 import numpy as np
 from jax import lax
 
+from .._core.jaxprs import closure_converted
+
 
 def segment_length(max_steps: int, checkpoints: int | None) -> int:
     """k, the iterations between two checkpoints: ceil(sqrt(max_steps)), or with `checkpoints`
@@ -122,16 +124,15 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
 
     # The body as a jaxpr whose constants (every array it closes over: the system's parameters,
     # traced or not) are explicit inputs, differentiated where inexact.
-    closed = jax.make_jaxpr(lambda *arrs: arrays(jtu.tree_leaves(body_fun(jtu.tree_unflatten(
-        tree, with_statics(list(arrs)))))))(*arrays(leaves))
-    consts = list(closed.consts)
+    body_c, consts, _ = closure_converted(lambda *arrs: arrays(jtu.tree_leaves(body_fun(jtu.tree_unflatten(
+        tree, with_statics(list(arrs)))))), *arrays(leaves))
     kmask = [eqx.is_inexact_array(x) for x in consts]
     k = segment_length(max_steps, checkpoints)
     num_stores = -(-max_steps // k)
     packing = _Packing(arrays(leaves))
 
     def step(ls, ks):
-        return with_statics(jax.core.eval_jaxpr(closed.jaxpr, ks, *arrays(ls)))
+        return with_statics(body_c(ks, *arrays(ls)))
 
     def forward(ls, ks, store: bool):
         buf = packing.buffers(num_stores) if store else []
@@ -193,13 +194,11 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
                 return _join(out, aux, amask), residuals
 
             ld_shapes, lnd_shapes = _split(shapes, amask)
-            lin = jax.make_jaxpr(linearised)(ld_shapes, kd_p, lnd_shapes)
-            kept_avals = lin.out_avals[len(amask):]
+            lin_c, lin_consts, (_, kept_avals) = closure_converted(linearised, ld_shapes, kd_p, lnd_shapes)
 
             def advance(ls):
                 ld_, lnd_ = _split(ls, amask)
-                flat = jax.core.eval_jaxpr(lin.jaxpr, lin.consts, *ld_, *kd_p, *lnd_)
-                return flat[:len(amask)], flat[len(amask):]
+                return lin_c(lin_consts, ld_, kd_p, lnd_)
 
             def pull_back(kept_, ct_d):
                 return jtu.tree_unflatten(pullback_tree[0], kept_)(ct_d)

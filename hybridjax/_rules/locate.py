@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .._core.jaxprs import closure_converted
 from .._definition.kernels import Kernels
 from .._step.runge_kutta import unrolled_sum
 from .records import Brackets, Detection, EventChoice
@@ -453,7 +454,10 @@ def event_point(kern: Kernels, eps, mode, k, t_star, interp, args, tol):
     # divided by a vanishing rate, and the time may move no further than the search's accuracy.
     w0 = jnp.minimum(onto_the_guard(g_v, gdot), jnp.minimum(sg(interp.t1) - t_v, sg(tol)))
     p = (t_s, x_star, diff_args)
-    local_c, consts = _closure_converted(local, w0, p)
+    # The closure's arrays (the loop's tracers among them: the engine's tables are built inside
+    # the traced call) become inputs of the custom derivative, whose JVP rule may be traced
+    # after the loop's trace has ended.
+    local_c, consts, _ = closure_converted(local, w0, p)
     w, y_ev = _located(local_c, w0, p, consts)
     # X(w0; p) to first order in w0 (`onto_the_guard`); x* itself where w0 = 0 (F may be inf).
     y_ev = y_ev + jnp.where(w0 != 0, w0 * F_v, jnp.zeros_like(F_v))
@@ -504,19 +508,3 @@ def _located_jvp(local, primals, tangents):
     (_, _, G_w, X_w), (G_p, X_p, _, _) = jax.jvp(lambda p_, c_: local(c_, w, p_), (p, consts), (dp, dconsts))
     dw = (-G_p / jnp.where(G_w != 0, G_w, 1.0)).astype(w.dtype)  # tangency: 1, not 0 (`grazing`)
     return (w, x), (dw, (X_p + X_w * dw).astype(x.dtype))
-
-
-def _closure_converted(fn, *example_args):
-    """`fn` as a function of its closure's arrays and its arguments, `(fn_c, consts)` with
-    `fn_c(consts, *args) == fn(*args)`: every array `fn` reads (the loop's tracers among them:
-    the engine's tables are built inside the traced call) becomes an argument of the custom
-    derivative, whose JVP rule may be traced after the loop's trace has ended (as
-    `jax.closure_convert`, which hoists only the values that may carry a tangent)."""
-    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
-    out_tree = jax.tree_util.tree_structure(out_shape)
-
-    def fn_c(consts, *args):
-        out = jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree_util.tree_leaves(args))
-        return jax.tree_util.tree_unflatten(out_tree, out)
-
-    return fn_c, list(closed.consts)
