@@ -60,9 +60,10 @@ def _join(on, off, mask):
 class _Packing:
     """The carried arrays laid out as one flat vector per dtype, so that storing a checkpoint
     is one indexed write per dtype rather than one per leaf (three against some sixty for the
-    loop's state, each a kernel of its own for XLA). The backward pass keeps a segment's
-    recomputed carries leaf by leaf: packed there, every iteration would copy the whole carry
-    once more (`jax.vmap(jax.grad(...))` over 1,000 balls took 1.5 times as long)."""
+    loop's state, each a kernel of its own for XLA). The backward pass keeps what it recomputes
+    of a segment (carries or residuals, `keep`) leaf by leaf: packed there, every iteration
+    would copy all of it once more (`jax.vmap(jax.grad(...))` over 1,000 balls took 1.5 times
+    as long with packed carries, 2.2 times with packed residuals)."""
 
     def __init__(self, arrays):
         self.dtypes = list(dict.fromkeys(jnp.result_type(x) for x in arrays))
