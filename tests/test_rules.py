@@ -18,6 +18,7 @@ from hybridjax import examples
 from hybridjax._core.status import Status
 from hybridjax._definition.kernels import GuardJets, Kernels
 from hybridjax._rules.locate import BracketedNewton
+from hybridjax._rules.zeno import ZenoOptions
 from hybridjax._step.runge_kutta import (
     PIDState,
     UnrolledERK,
@@ -576,6 +577,39 @@ def test_push_recent_and_saved_in_step():
     np.testing.assert_array_equal(
         R.saved_in_step(jnp.array([0.5, 1.0, 1.25, 1.5, 2.0]), 1.0, 1.5), [False, False, True, True, False]
     )
+
+
+def test_detect_zeno_on_the_ball_window_and_on_a_batch_of_lanes_last():
+    # A ball dropped from h0 at rest, restitution e: impacts at t_k = t_1 (1 + 2 (e + ... + e^(k-1))),
+    # t_1 = sqrt(2 h0 / g), flights shrinking by e, accumulating at t_1 (1 + e) / (1 - e)
+    # (`examples.zeno_time`); the post-impact states (0, e^k sqrt(2 g h0)) contract by e to (0, 0).
+    g, opts = 9.8, ZenoOptions()
+    R_ = opts.window + 2
+
+    def window(h0, e, k):  # the last R_ impacts up to the k-th, and the last three states
+        t1 = math.sqrt(2 * h0 / g)
+        times = [t1 * (1 + 2 * sum(e**j for j in range(1, i))) for i in range(k - R_ + 1, k + 1)]
+        states = [[0.0, e**i * math.sqrt(2 * g * h0)] for i in range(k - 2, k + 1)]
+        return np.array(times), np.array(states)
+
+    cases = [(1.0, 1 / math.sqrt(2), 8, 100.0), (0.5, 0.5, 6, 100.0), (2.0, 0.6, 7, 1.0), (1.0, 0.8, 9, 100.0)]
+    T, X = zip(*(window(h0, e, k) for h0, e, k, _ in cases), strict=True)
+    T, X = np.stack(T, -1), np.stack(X, -1)  # (R, N), (3, n, N): lanes last
+    T[0, 3] = np.inf  # fewer events than the window: never Zeno
+    t1 = np.array([c[3] for c in cases])
+    is_zeno, t_inf, x_inf = R.detect_zeno(jnp.asarray(T), jnp.asarray(X), jnp.asarray(t1), opts)
+    # the third lane's accumulation point lies after its t1
+    np.testing.assert_array_equal(is_zeno, [True, True, False, False])
+    for i in range(3):
+        h0, e = cases[i][0], cases[i][1]
+        np.testing.assert_allclose(t_inf[i], examples.zeno_time(h0, g, e), rtol=1e-12)
+        np.testing.assert_allclose(x_inf[:, i], [0.0, 0.0], atol=1e-12)
+    assert np.isinf(t_inf[3])
+    # each lane alone, as the per-execution engine calls it: the same values
+    for i in range(4):
+        one = R.detect_zeno(jnp.asarray(T[:, i]), jnp.asarray(X[..., i]), jnp.asarray(t1[i]), opts)
+        np.testing.assert_array_equal([one[0], one[1]], [is_zeno[i], t_inf[i]])
+        np.testing.assert_array_equal(one[2], x_inf[:, i])
 
 
 # ---------------------------------------------------------------------------- the step

@@ -21,6 +21,7 @@ functions and tests):
   rule, `resolve_simultaneous`), `event_point` (the implicit-function event time; its state in
   the guard, `onto_the_guard`);
 - the jump: `blocks`, `jump_outcome`, `push_recent`, `zeno_completion`;
+- Zeno: `detect_zeno` (on one execution's window, or on lanes' windows, lanes last);
 - saving: `saved_in_step`;
 - the precedence of statuses: `stop_first`.
 
@@ -88,3 +89,4 @@ from .step import step_stops as step_stops
 from .tolerances import clip_to_times as clip_to_times
 from .tolerances import event_time_tol as event_time_tol
 from .tolerances import step_end as step_end
+from .zeno import detect_zeno as detect_zeno

@@ -14,6 +14,8 @@ Reference: A. D. Ames, H. Zheng, R. D. Gregg, S. Sastry, "Is there life after Ze
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._step.runge_kutta import fold
+
 DEFAULT_WINDOW, DEFAULT_RATIO_TOL, DEFAULT_MAX_RATIO = 3, 0.05, 0.99
 
 
@@ -65,22 +67,27 @@ def zeno_options(zeno, window=DEFAULT_WINDOW, ratio_tol=DEFAULT_RATIO_TOL,
 
 def detect_zeno(recent_times, recent_states, t1, options: ZenoOptions):
     """(is_zeno, t_inf, x_inf) from the last `options.window + 2` event times and last 3
-    post-event states, oldest first (inf where fewer events have happened)."""
+    post-event states, oldest first (inf where fewer events have happened).
+
+    The window is the leading axis, of `recent_times` (R, ...) and `recent_states` (3, n, ...);
+    any further axes are executions (lanes last, `t1` (...)), each tested on its own: the
+    reductions over the window are written out (`fold`), elementwise, so a batch of lanes
+    needs no `jax.vmap` and no transposition."""
     ratio_tol, max_ratio = options.ratio_tol, options.max_ratio
     T = recent_times
-    L = jnp.diff(T)
-    ok = jnp.all(jnp.isfinite(T)) & jnp.all(L > 0)
-    L_safe = jnp.where(ok, L, 1.0)
+    L = T[1:] - T[:-1]
+    ok = fold(jnp.logical_and, jnp.isfinite(T)) & fold(jnp.logical_and, L > 0)
+    L_safe = jnp.where(ok[None], L, 1.0)  # [None]: the window axis, under any rank-promotion setting
     r = L_safe[1:] / L_safe[:-1]
     r_last = r[-1]
-    ok = ok & jnp.all(r > 0) & jnp.all(r <= max_ratio) & jnp.all(jnp.abs(r - r_last) <= ratio_tol * r_last)
+    ok = ok & fold(jnp.logical_and, (r > 0) & (r <= max_ratio) & (jnp.abs(r - r[-1:]) <= ratio_tol * r[-1:]))
     r_safe = jnp.where(ok, r_last, 0.5)
     t_inf = T[-1] + L_safe[-1] * r_safe / (1 - r_safe)
-    X = jnp.where(ok, recent_states, 0.0)
+    X = jnp.where(ok[None, None], recent_states, 0.0)
     d1, d2 = X[1] - X[0], X[2] - X[1]
     d1_safe = jnp.where(d1 != 0, d1, 1.0)
     rho = d2 / d1_safe
-    contracting = (d1 != 0) & (rho >= 0) & (rho < 1) & ok
+    contracting = (d1 != 0) & (rho >= 0) & (rho < 1) & ok[None]
     rho_safe = jnp.where(contracting, rho, 0.0)
     x_inf = X[2] + jnp.where(contracting, d2 * rho_safe / (1 - rho_safe), 0.0)
     return ok & (t_inf <= t1), jnp.where(ok, t_inf, jnp.inf), x_inf
