@@ -17,7 +17,10 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   runs under a `lax.cond` taken only when some lane needs it, on those lanes gathered into
   blocks of lanes/32, updated there and scattered back once per changed field, block after
   block (a loop of at most lanes/block passes, checkpointed for reverse mode) until every lane
-  that needs it is done;
+  that needs it is done; each pass costs a few hundred small kernels whatever its lanes, so
+  what can run on every lane at once does: the first epoch's start test (every lane needs it,
+  before the loop) and the Zeno test of the step's events (`zeno_stage`, after the last
+  block: it reads each lane's window of recent events alone);
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
   in every checkpoint;
@@ -287,8 +290,9 @@ class BatchedLoop:
         lanes in `tree` (`lane_args`)."""
         return jax.vmap(fn, in_axes=(-1,) * len(tree) + (self.args_axis,), out_axes=-1)(*tree, args)
 
-    def on_block(self, mask, fn, operand):
-        """`operand` after `fn(idx, operand)` on every lane in `mask`, a block at a time.
+    def on_block(self, mask, fn, operand, in_blocks: bool = True):
+        """`operand` after `fn(idx, operand)` on every lane in `mask`, a block at a time
+        (`in_blocks` False: on every lane at once, `idx` None).
 
         `idx` (block,): the next `block` lanes where `mask` holds, in order, padded with N
         (spare slots). Passes over blocks repeat, in a while loop of at most N/block passes
@@ -303,7 +307,7 @@ class BatchedLoop:
         than writing each output into N-wide zeros and merging it into the state with N-wide
         selects.
         """
-        if self.block >= self.N:
+        if self.block >= self.N or not in_blocks:
             return fn(None, operand)
         count = running_count(mask)
         total = count[-1]
@@ -441,26 +445,34 @@ class BatchedLoop:
                            tuple(a.at[ids, row].set(v) for a, v in zip((rec.real, rec.index, rec.flag), rows,
                                                                       strict=True)))
 
-    def begin_epoch(self, st: Lanes, mask, kept, t, y, mode, zero_run) -> Lanes:
+    def begin_epoch(self, st: Lanes, mask, kept, t, y, mode, zero_run, window: bool = True) -> Lanes:
         """The lanes in `mask` at the start of an epoch at (t, y) in `mode`, after an event
-        (recorded where `kept`)."""
-        return eqx.tree_at(
-            lambda s: (s.t, s.y, s.mode, s.at_start, s.zero_run, s.num_events, s.recent_times,
-                       s.recent_states),
-            st,
+        (recorded where `kept`, and added to the Zeno test's window unless `window` is False:
+        `push_window`)."""
+        st = eqx.tree_at(
+            lambda s: (s.t, s.y, s.mode, s.at_start, s.zero_run, s.num_events), st,
             (jnp.where(mask, t, st.t), jnp.where(mask, y, st.y), jnp.where(mask, mode, st.mode),
              st.at_start | mask, jnp.where(mask, zero_run, st.zero_run),
-             st.num_events + kept.astype(jnp.int32),
-             jnp.where(kept, push_recent(st.recent_times, t), st.recent_times),
-             jnp.where(kept, push_recent(st.recent_states, y), st.recent_states)),
+             st.num_events + kept.astype(jnp.int32)),
         )
+        return self.push_window(st, kept, t, y) if window else st
+
+    def push_window(self, st: Lanes, kept, t, y) -> Lanes:
+        """The Zeno test's window of recent events (`push_recent`) of the lanes in `kept`, after
+        an event at (t, y) (the state after its reset); none without the test."""
+        if self.zeno is None:
+            return st
+        return eqx.tree_at(lambda s: (s.recent_times, s.recent_states), st,
+                           (jnp.where(kept, push_recent(st.recent_times, t), st.recent_times),
+                            jnp.where(kept, push_recent(st.recent_states, y), st.recent_states)))
 
     def jump(self, st: Lanes, rec: LaneRecord, mask, k, t_ev, y_before, y_after, simultaneous,
-             grazing, zero_length: bool, args, inside=None):
+             grazing, zero_length: bool, inside=None, window: bool = True):
         """Record transition k at t_ev on the lanes in `mask` and apply its reset (computed by
-        the caller); then stop on too many epochs, non-finite values, chattering or Zeno, or
-        complete a Zeno execution (`zeno_completion`). `st` is the block of lanes (`on_block`)
-        the jumps can happen on, `args` theirs. Also returns the lanes that completed."""
+        the caller); then stop on too many epochs, non-finite values or chattering. `st` is the
+        block of lanes (`on_block`) the jumps can happen on. Also returns the lanes whose reset
+        was applied, for the Zeno test (`zeno_stage`), which the caller runs next; `window`
+        False: the caller adds the events to the test's window too (`push_window`)."""
         K = self.kern.num_transitions
         out = jump_outcome(st.num_events, self.max_epochs, y_after, zero_length, st.zero_run,
                            self.max_zero_epochs)
@@ -468,30 +480,65 @@ class BatchedLoop:
         target = self.kern.targets[jnp.clip(k, 0, K - 1)]
         rec = self.record(st, rec, kept, k, t_ev, target, y_before, y_after, simultaneous, grazing, inside)
         # Where the reset is not applied (not finite), the execution ends at the pre-event state.
-        st = self.begin_epoch(st, jumped, kept, t_ev, y_after, target, out.zero_run)
+        st = self.begin_epoch(st, jumped, kept, t_ev, y_after, target, out.zero_run, window)
         st = eqx.tree_at(lambda s: (s.t, s.y), st,
                          (jnp.where(mask, t_ev, st.t), jnp.where(mask & ~jumped, y_before, st.y)))
         st = _stop(st, *((mask & pred, status) for pred, status in out.stops))
-        completed = jnp.zeros_like(mask)
-        if self.zeno is not None:
-            is_zeno, t_inf, x_inf = jax.vmap(
-                lambda T, X, t1: detect_zeno(T, X, t1, self.zeno), in_axes=-1, out_axes=-1
-            )(st.recent_times, st.recent_states, st.t1)
-            z = jumped & is_zeno & ~st.done
-            st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st,
-                             (jnp.where(z, t_inf, st.zeno_time), jnp.where(z, x_inf, st.zeno_state)))
-            if self.system.completions:
-                E = self.max_epochs
-                comp = self.lane_map(
-                    lambda m, zz, tt, xx, ne, a: zeno_completion(self.kern, m, zz, tt, xx, a, ne, E),
-                    st.mode, z, t_inf, x_inf, st.num_events, args=args,
-                )
-                completed = comp.completes
-                rec = self.record(st, rec, completed, comp.index, comp.t, comp.target, comp.x, comp.y_after)
-                st = self.begin_epoch(st, completed, completed, comp.t, comp.y_after, comp.target, 0)
-                st = _stop(st, (comp.no_room, Status.MAX_EPOCHS))
-            st = _stop(st, (z & ~completed, Status.ZENO))
-        return st, rec, completed
+        return st, rec, jumped
+
+    def zeno_stage(self, st: Lanes, rec: LaneRecord, jumped, args) -> tuple[Lanes, LaneRecord]:
+        """The Zeno test of the lanes in `jumped`, after their jump (`zeno_test`): where event
+        times accumulate before t1, a lane stops with `ZENO`, or completes its execution
+        through its mode's completion (`zeno_outcome`). `st`: all lanes, or a block of them
+        (`on_block`); `args` theirs.
+
+        The test reads each lane's window of recent events alone, so it can run wherever the
+        jumps leave the lanes: the start stage's on its block; the step's events, located block
+        by block, are tested together on every lane after the last block (`step_stage`: a few
+        kernels over the batch per iteration, not a dozen per block)."""
+        if self.zeno is None:
+            return st, rec
+        return self.zeno_outcome(st, rec, self.zeno_test(st, jumped), args)
+
+    def zeno_test(self, st: Lanes, jumped):
+        """The lanes of `jumped` whose window of recent events is Zeno (`detect_zeno`)."""
+        return jumped & detect_zeno(st.recent_times, st.recent_states, st.t1, self.zeno)[0] & ~st.done
+
+    def zeno_outcome(self, st: Lanes, rec: LaneRecord, z, args) -> tuple[Lanes, LaneRecord]:
+        """The lanes in `z`, found Zeno (`zeno_test`), with their accumulation time and state
+        (`detect_zeno`), stopped with `ZENO`, or completed through their mode's completion
+        (`zeno_completion`: recorded as an event, its epoch started; `MAX_EPOCHS` without room)."""
+        window = (st.recent_times, st.recent_states, st.t1)
+
+        def limits(ops):
+            # The accumulation time and state, where some lane is Zeno (rare): the state's
+            # extrapolation reads every component of the window.
+            z, window, zeno_time, zeno_state = ops
+            _, t_inf, x_inf = detect_zeno(*window, self.zeno)
+            return jnp.where(z, t_inf, zeno_time), jnp.where(z, x_inf, zeno_state), t_inf, x_inf
+
+        some = jnp.any(z)
+        ops = (z, window, st.zeno_time, st.zeno_state)
+        zeno_time, zeno_state, t_inf, x_inf = lax.cond(
+            some, limits, lambda ops: (ops[2], ops[3], jnp.zeros_like(ops[2]), jnp.zeros_like(ops[3])), ops)
+        st = eqx.tree_at(lambda s: (s.zeno_time, s.zeno_state), st, (zeno_time, zeno_state))
+        if not self.system.completions:
+            return _stop(st, (z, Status.ZENO)), rec
+
+        def complete(carry):
+            st, rec = carry
+            E = self.max_epochs
+            comp = self.lane_map(
+                lambda m, zz, tt, xx, ne, a: zeno_completion(self.kern, m, zz, tt, xx, a, ne, E),
+                st.mode, z, t_inf, x_inf, st.num_events, args=args,
+            )
+            completed = comp.completes
+            rec = self.record(st, rec, completed, comp.index, comp.t, comp.target, comp.x, comp.y_after)
+            st = self.begin_epoch(st, completed, completed, comp.t, comp.y_after, comp.target, 0)
+            st = _stop(st, (comp.no_room, Status.MAX_EPOCHS))
+            return _stop(st, (z & ~completed, Status.ZENO)), rec
+
+        return lax.cond(some, complete, lambda c: c, (st, rec))
 
     # ------------------------------------------------------------------ start of an epoch
     def _start_lane(self, t, y, mode, h_prev, t1, args, after_step: bool = False) -> "LaneStart":
@@ -527,7 +574,9 @@ class BatchedLoop:
                            (jnp.where(mask, 1.0, st.inv_error), jnp.where(mask, 1.0, st.prev_inv_error),
                             st.at_dtmin & ~mask))
 
-    def start_stage(self, st: Lanes, rec: LaneRecord):
+    def start_stage(self, st: Lanes, rec: LaneRecord, in_blocks: bool = True):
+        """The epoch-start test of every running lane at the start of an epoch, block by block
+        (`on_block`; `in_blocks` False: on every lane at once)."""
         active = st.at_start & ~st.done
 
         def run(idx, carry):
@@ -548,23 +597,35 @@ class BatchedLoop:
             st = _stop(st, (go & (st.t >= st.t1), Status.T1_REACHED))
             st = _stop(st, (fire & blocks(start.k, K), Status.BLOCKED))
             if K:
-                st, rec, _ = self.jump(st, rec, fire & ~blocks(start.k, K), start.k, st.t, st.y, y_after,
-                                       start.simultaneous, jnp.zeros_like(fire), zero_length=True,
-                                       args=self.lane_args(st_all, idx), inside=start.inside)
+                st, rec, jumped = self.jump(st, rec, fire & ~blocks(start.k, K), start.k, st.t, st.y, y_after,
+                                            start.simultaneous, jnp.zeros_like(fire), zero_length=True,
+                                            inside=start.inside)
+                st, rec = self.zeno_stage(st, rec, jumped, self.lane_args(st_all, idx))
             st = _stop(st, (active_now & ~start.finite, Status.NONFINITE))
             return _scatter_lanes(st_all, b0, st, idx), rec
 
-        return lax.cond(jnp.any(active), lambda c: self.on_block(active, run, c), lambda c: c, (st, rec))
+        return lax.cond(jnp.any(active), lambda c: self.on_block(active, run, c, in_blocks), lambda c: c,
+                        (st, rec))
 
     # ------------------------------------------------------------------ one step
-    def _event_lane(self, step: "LaneStep", det: Detection, mode, s_ext, h_new, t1, args) -> "StepEvent":
+    def sample_times(self, t, t_next) -> list:
+        """The guard samples' times in the step from t to t_next: t, t + h theta_i, t_next
+        (h = t_next - t; no gradient). The event stage computes them again on its lanes, the
+        same arithmetic, rather than gathering them."""
+        t, t_next = sg(t), sg(t_next)
+        hs = t_next - t
+        last = len(self.thetas) - 1
+        return [t if i == 0 else t_next if i == last else t + hs * float(th)
+                for i, th in enumerate(self.thetas)]
+
+    def _event_lane(self, step: "LaneStep", det: Detection, mode, h_new, t1, args) -> "StepEvent":
         """One lane's first event in its step (as `Loop.step_stage`): dips and root
         (`event_brackets`, `first_event`), IFT point (`event_point`), reset; then the next
         epoch's start test (`_start_lane`) on the reset state, so that the common case (no guard
         fires at once) needs no separate start stage."""
         kern, K = self.kern, self.kern.num_transitions
         t, t_next, y, y1, ks = step
-        s_ext = jnp.stack(s_ext)
+        s_ext = jnp.stack(self.sample_times(t, t_next))
         # The search runs on the step's slots, `mode`'s own watched functions (`slot_guards`;
         # unused slots read 1 and never fire); the event's function is mapped back at the end.
         interp_sg = ChebyshevDense.from_stages(self.cheb, sg(t), sg(t_next), sg(y), sg(y1), sg(ks))
@@ -653,8 +714,7 @@ class BatchedLoop:
         keep = keep & finite_y1
         if num_watch:
             hs = sg(hh)
-            times = [sg(t) if i == 0 else sg(t_next) if i == len(self.thetas) - 1 else sg(t) + hs * float(th)
-                     for i, th in enumerate(self.thetas)]
+            times = self.sample_times(t, t_next)
 
             def guard_samples(ops):
                 y_sg, y1_sg, ks_sg, hs, times, mode, args = ops
@@ -714,11 +774,18 @@ class BatchedLoop:
                 # block of those lanes.
                 new_all, rec, t_end = carry
                 out = self.lane_map(self._event_lane,
-                                    *self.take((LaneStep(t, t_next, y, y1, ks), det, st.mode, times,
-                                                h_new, st.t1), idx),
+                                    *self.take((LaneStep(t, t_next, y, y1, ks), det, st.mode, h_new,
+                                                st.t1), idx),
                                     args=self.lane_args(st, idx))
-                # Each output feeds several fields' updates; computed once (`_materialize`).
-                out = _materialize(out, jnp.any(need))
+                # The event's state and the next epoch's start test feed several fields'
+                # updates each: computed once (`_materialize`). The flags and indices, cheap to
+                # recompute, are not copied (each copy is a kernel per block).
+                nxt = out.next
+                shared = (out.t_ev, out.y_before, out.y_after, nxt.fire, nxt.finite, nxt.g_start, nxt.h,
+                          nxt.F)
+                t_ev, y_before, y_after, fire, finite, g_start, h, F = _materialize(shared, jnp.any(need))
+                out = out._replace(t_ev=t_ev, y_before=y_before, y_after=y_after,
+                                   next=nxt._replace(fire=fire, finite=finite, g_start=g_start, h=h, F=F))
                 back = ("t", "y", "f0", "g_prev_slots", "zero_run")
                 new = b0 = _gather_lanes(new_all, idx)
                 before = _gather_lanes(st, idx)
@@ -734,13 +801,13 @@ class BatchedLoop:
                 new = _stop(new, (blocked, Status.BLOCKED))
                 if K:
                     jumping = ev & ~blocks(out.k, K)
-                    new, rec, completed = self.jump(new, rec, jumping, out.k, out.t_ev, out.y_before,
-                                                    out.y_after, out.simultaneous, out.grazing,
-                                                    zero_length=False, args=self.lane_args(st, idx))
+                    new, rec, _ = self.jump(new, rec, jumping, out.k, out.t_ev, out.y_before, out.y_after,
+                                            out.simultaneous, out.grazing, zero_length=False, window=False)
                     # The new epoch's start test was done with the event: where no guard fires
                     # at once, start it here (the start stage handles the rest next iteration,
-                    # and the epoch after a Zeno completion).
-                    go = (jumping & new.at_start & ~new.done & ~completed & ~out.next.fire
+                    # and the epoch after a Zeno completion, which starts it anew). The Zeno
+                    # test follows the last block (`zeno_stage`).
+                    go = (jumping & new.at_start & ~new.done & ~out.next.fire
                           & out.next.finite & (new.t < new.t1))
                     new = eqx.tree_at(
                         lambda s: (s.at_start, s.g_prev_slots, s.h, s.f0), new,
@@ -764,6 +831,24 @@ class BatchedLoop:
                 return _stop(new, (reached, Status.T1_REACHED)), rec, t_end
 
             new, rec, t_end = lax.cond(jnp.any(need), some_events, no_events, (new, rec, sg(t_next)))
+            if K and self.zeno is not None:
+                # The Zeno test of the step's events, on every lane after the last block: each
+                # event kept adds one to the count and leaves the lane at (t_ev, y_after) (the
+                # window's entry), or, where its reset is not applied, ends the execution.
+                # Under a conditional on some lane having jumped: an event-sparse batch skips
+                # the test in most iterations.
+                kept = new.num_events > st.num_events
+
+                def test(new):
+                    new = self.push_window(new, kept, new.t, new.y)
+                    return (new.recent_times, new.recent_states), self.zeno_test(new, kept & ~new.done)
+
+                def untested(new):
+                    return (new.recent_times, new.recent_states), jnp.zeros_like(kept)
+
+                window, z = lax.cond(jnp.any(kept), test, untested, new)
+                new = eqx.tree_at(lambda s: (s.recent_times, s.recent_states), new, window)
+                new, rec = self.zeno_outcome(new, rec, z, args)
             took = acc
         else:
             new = _stop(new, (reached, Status.T1_REACHED))
@@ -846,6 +931,10 @@ class BatchedLoop:
         rounds = -(-self.num_exec // self.N)  # executions per lane, at most
         carry = perturbed_like_the_body(self.init(t0, y0, mode0), (t0, y0, self.args, self.t1),
                                         LANE_DIFFERENTIABLE_FIELDS)
+        # Every lane starts its first epoch: tested on all lanes at once, before the loop, in one
+        # pass rather than lanes/block passes of the loop's first iteration (at the price of
+        # one more compiled copy of the start stage).
+        carry = self.start_stage(*carry, in_blocks=False)
         st, rec = eqxi.while_loop(
             lambda c: jnp.any(~c[0].done) | (c[0].next_exec < self.num_exec),
             self.body,
