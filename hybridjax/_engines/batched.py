@@ -19,8 +19,8 @@ either starts an epoch or takes one step, as in `Loop`, with the same semantics:
   block (a loop of at most lanes/block passes, checkpointed for reverse mode) until every lane
   that needs it is done; each pass costs a few hundred small kernels whatever its lanes, so
   what can run on every lane at once does: the first epoch's start test (every lane needs it,
-  before the loop) and the Zeno test of the step's events (`zeno_stage`, after the last
-  block: it reads each lane's window of recent events alone);
+  before the loop) and the Zeno test of the step's events (`step_zeno_stage`, after the
+  last block: it reads each lane's window of recent events alone);
 - events are written into the max_epochs-long record (the `Solution`'s own arrays) in place;
   the record is the while loop's `buffers` (write-once), so reverse mode does not store it
   in every checkpoint;
@@ -494,11 +494,30 @@ class BatchedLoop:
 
         The test reads each lane's window of recent events alone, so it can run wherever the
         jumps leave the lanes: the start stage's on its block; the step's events, located block
-        by block, are tested together on every lane after the last block (`step_stage`: a few
-        kernels over the batch per iteration, not a dozen per block)."""
+        by block, are tested together on every lane after the last block (`step_zeno_stage`: a
+        few kernels over the batch per iteration, not a dozen per block)."""
         if self.zeno is None:
             return st, rec
         return self.zeno_outcome(st, rec, self.zeno_test(st, jumped), args)
+
+    def step_zeno_stage(self, st: Lanes, new: Lanes, rec: LaneRecord, args) -> tuple[Lanes, LaneRecord]:
+        """`zeno_stage` of a step's events, on every lane after the last block: `st` the lanes
+        before the events, `new` after them. Each event kept adds one to the count and leaves
+        the lane at (t_ev, y_after), its window's entry (`push_window`), or, where its reset is
+        not applied, ends the execution. Under a conditional on some lane having jumped: an
+        event-sparse batch skips the test in most iterations."""
+        kept = new.num_events > st.num_events
+
+        def test(new):
+            new = self.push_window(new, kept, new.t, new.y)
+            return (new.recent_times, new.recent_states), self.zeno_test(new, kept & ~new.done)
+
+        def untested(new):
+            return (new.recent_times, new.recent_states), jnp.zeros_like(kept)
+
+        window, z = lax.cond(jnp.any(kept), test, untested, new)
+        new = eqx.tree_at(lambda s: (s.recent_times, s.recent_states), new, window)
+        return self.zeno_outcome(new, rec, z, args)
 
     def zeno_test(self, st: Lanes, jumped):
         """The lanes of `jumped` whose window of recent events is Zeno (`detect_zeno`)."""
@@ -832,23 +851,7 @@ class BatchedLoop:
 
             new, rec, t_end = lax.cond(jnp.any(need), some_events, no_events, (new, rec, sg(t_next)))
             if K and self.zeno is not None:
-                # The Zeno test of the step's events, on every lane after the last block: each
-                # event kept adds one to the count and leaves the lane at (t_ev, y_after) (the
-                # window's entry), or, where its reset is not applied, ends the execution.
-                # Under a conditional on some lane having jumped: an event-sparse batch skips
-                # the test in most iterations.
-                kept = new.num_events > st.num_events
-
-                def test(new):
-                    new = self.push_window(new, kept, new.t, new.y)
-                    return (new.recent_times, new.recent_states), self.zeno_test(new, kept & ~new.done)
-
-                def untested(new):
-                    return (new.recent_times, new.recent_states), jnp.zeros_like(kept)
-
-                window, z = lax.cond(jnp.any(kept), test, untested, new)
-                new = eqx.tree_at(lambda s: (s.recent_times, s.recent_states), new, window)
-                new, rec = self.zeno_outcome(new, rec, z, args)
+                new, rec = self.step_zeno_stage(st, new, rec, args)
             took = acc
         else:
             new = _stop(new, (reached, Status.T1_REACHED))
