@@ -60,6 +60,29 @@ def test_gradient_with_respect_to_t0_and_t1():
     np.testing.assert_allclose(d0, [-x1[1], 9.8], rtol=1e-8)
 
 
+def test_derivatives_when_the_last_step_lands_on_t1_to_the_last_bit():
+    # Constant steps of 0.25 from 0 end at t1 = 1 exactly (0.75 + 0.25 = 1.0): the final state
+    # is x(t1), whose derivatives are the closed form's in full, with t1's tangent (not half of
+    # t's, as min(t + h, t1) would give at the tie). No impact before t1:
+    # h(t1) = h0 + v0 T - g T^2 / 2, T = t1 - t0; v(t1) = v0 - g T.
+    steps = dict(stepsize_controller=diffrax.ConstantStepSize(), dt0=0.25)
+
+    def one(p):  # p = (h0, v0, g, t0, t1)
+        return hj.simulate(BALL, p[:2], "flight", p[3], p[4], {"g": p[2], "e": 0.8}, **steps).final_state
+
+    def batch(p):  # two executions on the per-execution engine under jax.vmap, called directly
+        x0 = jnp.stack([p[:2], p[:2] + jnp.array([1.0, 0.0])])
+        return hj.simulate_batch(BALL, x0, "flight", p[3], p[4], {"g": p[2], "e": 0.8}, engine="vmap",
+                                 **steps).final_state
+
+    p = jnp.array([10.0, 0.5, 9.8, 0.0, 1.0])
+    v1 = 0.5 - 9.8
+    exact = np.array([[1.0, 1.0, -0.5, -v1, v1], [0.0, 1.0, -1.0, 9.8, -9.8]])
+    np.testing.assert_allclose(jax.jacfwd(one)(p), exact, rtol=1e-12, atol=1e-12)
+    J = jax.jacrev(batch)(p)
+    np.testing.assert_allclose(J, np.stack([exact, exact]), rtol=1e-12, atol=1e-12)
+
+
 def test_zero_length_epoch_chain_sensitivity_ceiling():
     # d v(T) / d v0 = g dt*/dv0 = -g t*/v* = 1 - sqrt(5) for z0 = 0, v0 = 7, H = 2, g = 9.8, T = 1.
     p = {"g": 9.8, "H": 2.0}

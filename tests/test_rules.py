@@ -57,6 +57,22 @@ def test_step_end_moves_t_by_at_least_one_ulp_and_stops_at_t1():
     assert float(R.step_end(jnp.asarray(9.8), 1.0, 10.0)) == 10.0
 
 
+def test_a_step_that_lands_on_t1_takes_t1s_derivative():
+    # t + h = t1 to the last bit: the step ends at t1 with t1's tangent (jnp.minimum would give
+    # half of each argument's). Tangents: t 1, h 0, t1 3 -> 3; elsewhere the smaller one's.
+    def end(t, h, t1):
+        return jax.jvp(R.step_end, (jnp.asarray(t), jnp.asarray(h), jnp.asarray(t1)),
+                       (jnp.asarray(1.0), jnp.asarray(0.0), jnp.asarray(3.0)))
+
+    assert tuple(map(float, end(0.75, 0.25, 1.0))) == (1.0, 3.0)
+    assert tuple(map(float, end(0.5, 0.25, 1.0))) == (0.75, 1.0)
+    assert tuple(map(float, end(0.875, 0.25, 1.0))) == (1.0, 3.0)
+    # clip_to_times: a jump time at t1 is not stepped to, and t1 keeps its tangent at the tie
+    _, t_next, _ = jax.jvp(lambda t1: R.clip_to_times(jnp.asarray(0.5), jnp.asarray(1.0), t1, None,
+                                                      jnp.array([1.0])), (jnp.asarray(1.0),), (jnp.asarray(3.0),))[1]
+    assert float(t_next) == 3.0
+
+
 def test_clip_to_times_ends_steps_at_step_times_and_steps_over_jump_times():
     # diffrax's ClipStepSizeController rule, by hand: a step ends at the next step time, just
     # before the next jump time, and the step after starts just after the jump time.

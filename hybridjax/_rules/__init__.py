@@ -9,7 +9,7 @@ gathering and scattering of lanes, the while loop); what an execution *does* is 
 The rules, in the order an iteration meets them (docs: Architecture has the table of rules,
 functions and tests):
 
-- tolerances: `event_time_tol`, `step_end` (the t_next clamp), `clip_to_times` (step_ts,
+- tolerances: `event_time_tol`, `step_end` (the t_next clamp, `at_most_end`), `clip_to_times` (step_ts,
   jump_ts);
 - the start of an epoch: `epoch_start` (`start_decision`: the trending-negative band and Lie
   derivatives; `first_step`, `departure_step_bound`);
@@ -86,6 +86,7 @@ from .status import stop_first as stop_first
 from .step import nonfinite_step as nonfinite_step
 from .step import step_collapsed as step_collapsed
 from .step import step_stops as step_stops
+from .tolerances import at_most_end as at_most_end
 from .tolerances import clip_to_times as clip_to_times
 from .tolerances import event_time_tol as event_time_tol
 from .tolerances import step_end as step_end

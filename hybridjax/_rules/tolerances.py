@@ -20,13 +20,25 @@ def event_time_tol(event_tol, t, h, eps):
     return jnp.maximum(event_tol * jnp.abs(h), 8 * eps * jnp.abs(t))
 
 
+def at_most_end(t_next, t1):
+    """min(t_next, t1), with t1's derivative where they are equal.
+
+    A step that reaches the end time ends at t1, so the final state is the state at t1 and its
+    derivative holds t1 where t1 is held (the final time of a run is a parameter, not a
+    consequence of the trajectory). `jnp.minimum` gives each argument half the derivative at a
+    tie (`lax.min`'s balanced rule): where a proposed step lands on t1 to the last bit, the
+    final state's derivative would take half of t's (the last event time's) with it.
+    """
+    return jnp.where(t_next < t1, t_next, t1)
+
+
 def step_end(t, h, t1):
-    """The end of the next step: t_next = min(max(t + h, nextafter(t)), t1).
+    """The end of the next step: t_next = min(max(t + h, nextafter(t)), t1) (`at_most_end`).
 
     A step always moves t by at least one ulp (a proposal below the resolution of t would
     leave it in place) and never passes the end time t1.
     """
-    return jnp.minimum(jnp.maximum(t + h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), t1)
+    return at_most_end(jnp.maximum(t + h, t + (jnp.nextafter(sg(t), jnp.inf) - sg(t))), t1)
 
 
 def _time_at(ts, i):
@@ -68,5 +80,5 @@ def clip_to_times(t, t_next, t1, step_ts, jump_ts):
         t = t + (moved - t_sg)  # the derivative of t kept
         t_next = jnp.maximum(jnp.nextafter(moved, jnp.inf), t_next)
         j = _time_at(jump_ts, jnp.searchsorted(jump_ts, moved, side="right"))
-        t_next = jnp.minimum(jnp.where(j < t1, jnp.minimum(t_next, jnp.nextafter(j, -jnp.inf)), t_next), t1)
+        t_next = at_most_end(jnp.where(j < t1, jnp.minimum(t_next, jnp.nextafter(j, -jnp.inf)), t_next), t1)
     return t, t_next, made_jump
