@@ -27,9 +27,10 @@ def at_most_end(t_next, t1):
     derivative holds t1 where t1 is held (the final time of a run is a parameter, not a
     consequence of the trajectory). `jnp.minimum` gives each argument half the derivative at a
     tie (`lax.min`'s balanced rule): where a proposed step lands on t1 to the last bit, the
-    final state's derivative would take half of t's (the last event time's) with it.
+    final state's derivative would take half of t's (the last event time's) with it. A NaN
+    t_next stays NaN, as `jnp.minimum`'s, for the non-finite-step rule to see.
     """
-    return jnp.where(t_next < t1, t_next, t1)
+    return jnp.where(t_next >= t1, t1, t_next)
 
 
 def step_end(t, h, t1):
