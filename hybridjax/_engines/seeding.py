@@ -10,7 +10,10 @@ from jax import lax
 def _zero_from(xs):
     """0.0 (+0.0, exactly), with a (zero) derivative wherever one of `xs` has one: each leaf
     selected away (`lax.select` on an all-False predicate, whose tangent is the tangent
-    selected away: a zero that depends on it), and the zeros summed."""
+    selected away: a zero that depends on it), and the zeros summed. Batched under `jax.vmap`
+    wherever a leaf is (a `jax.custom_jvp` returning an unbatched zero with a batched tangent
+    fails JAX's batching once staged: `jax.grad` of a direct `simulate_batch` call on the
+    per-execution engine)."""
     dtype = jnp.result_type(*xs)
     away = (lax.select(jnp.zeros(jnp.shape(x), bool), x, jnp.zeros_like(x)) for x in xs)
     return sum(jnp.sum(a).astype(dtype) for a in away)
