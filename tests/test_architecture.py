@@ -170,6 +170,7 @@ SHARED_RULES = (
     "jump_outcome",
     "push_recent",
     "saved_in_step",
+    "within_step",
     "stop_first",
     "detect_zeno",
     "zeno_completion",

@@ -83,6 +83,25 @@ def test_derivatives_when_the_last_step_lands_on_t1_to_the_last_bit():
     np.testing.assert_allclose(J, np.stack([exact, exact]), rtol=1e-12, atol=1e-12)
 
 
+def test_derivatives_of_a_save_at_t1():
+    # The state saved at t1 is x(t1): d/dt1 = F(x(t1)) = (v(t1), -g), with v(t1) = -g t1 for a
+    # ball dropped from h0 = 10 (no impact before t1 = 1); the save at 0.5 does not move with t1.
+    # Both engines: the per-execution loop and the batched one.
+    def saved(engine):
+        def ys(t1):
+            saveat = diffrax.SaveAt(ts=jnp.stack([jnp.asarray(0.5), t1]))
+            kw = dict(saveat=saveat, stepsize_controller=TIGHT)
+            if engine == "simulate":
+                return hj.simulate(BALL, jnp.array([10.0, 0.0]), "flight", 0.0, t1, BALL_ARGS, **kw).ys
+            return hj.simulate_batch(BALL, jnp.array([[10.0, 0.0]]), "flight", 0.0, t1, BALL_ARGS, engine="batched",
+                                     **kw).ys[0]
+        return ys
+
+    exact = np.array([[0.0, 0.0], [-9.8, -9.8]])
+    np.testing.assert_allclose(jax.jacfwd(saved("simulate"))(jnp.asarray(1.0)), exact, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(jax.jacrev(saved("simulate_batch"))(jnp.asarray(1.0)), exact, rtol=1e-9, atol=1e-12)
+
+
 def test_zero_length_epoch_chain_sensitivity_ceiling():
     # d v(T) / d v0 = g dt*/dv0 = -g t*/v* = 1 - sqrt(5) for z0 = 0, v0 = 7, H = 2, g = 9.8, T = 1.
     p = {"g": 9.8, "H": 2.0}

@@ -74,6 +74,17 @@ def test_a_step_that_lands_on_t1_takes_t1s_derivative():
     assert float(t_next) == 3.0
 
 
+def test_a_save_time_at_the_steps_end_keeps_its_derivative():
+    # x(s) moves with s: at s = t_next (a save at t1 in the last step) the tangent is s's own,
+    # 3 (jnp.clip against the constant end gives 1.5); outside the step, the end, tangent 0.
+    def at(s):
+        return tuple(map(float, jax.jvp(lambda s_: R.within_step(s_, jnp.asarray(0.5), jnp.asarray(1.0)),
+                                        (jnp.asarray(s),), (jnp.asarray(3.0),))))
+
+    assert at(1.0) == (1.0, 3.0) and at(0.5) == (0.5, 3.0) and at(0.7) == (0.7, 3.0)
+    assert at(1.2) == (1.0, 0.0) and at(0.2) == (0.5, 0.0)
+
+
 def test_clip_to_times_ends_steps_at_step_times_and_steps_over_jump_times():
     # diffrax's ClipStepSizeController rule, by hand: a step ends at the next step time, just
     # before the next jump time, and the step after starts just after the jump time.

@@ -59,7 +59,7 @@ from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
 from .._rules.locate import event_brackets, event_point, first_event
 from .._rules.options import SolveOptions
 from .._rules.records import Detection, EpochStart
-from .._rules.save import saved_in_step
+from .._rules.save import saved_in_step, within_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
@@ -885,7 +885,7 @@ class BatchedLoop:
             idx = ptr[None, :] + jnp.arange(SAVE_WINDOW)[:, None]  # (SAVE_WINDOW, N)
             tt = self.save_sorted[jnp.minimum(idx, S - 1)]
             ok = took & (idx < S) & saved_in_step(tt, sg(t_from), t_end)
-            vals = windowed.evaluate(jnp.clip(tt, sg(t), sg(t_next))[None])  # (n, SAVE_WINDOW, N)
+            vals = windowed.evaluate(within_step(tt, t, t_next)[None])  # (n, SAVE_WINDOW, N)
             rows = jnp.where(ok, self.save_order[jnp.minimum(idx, S - 1)], S)  # S: dropped
             ys = rec.ys.at[lanes[None, :], rows].set(jnp.moveaxis(vals, 0, -1), mode="drop")
             modes = rec.saved_modes.at[lanes[None, :], rows].set(
@@ -909,7 +909,7 @@ class BatchedLoop:
         hit = took & saved_in_step(st.t1, sg(t_from), t_end)
 
         def put(rec):
-            vals = dense.evaluate(jnp.clip(st.t1, sg(t), sg(t_next)))
+            vals = dense.evaluate(within_step(st.t1, t, t_next))
             ids = jnp.where(hit, st.exec_id, self.num_exec)  # num_exec: dropped
             ys = rec.ys.at[ids, -1].set(vals.T, mode="drop")
             modes = rec.saved_modes.at[ids, -1].set(mode, mode="drop")

@@ -70,7 +70,7 @@ from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
 from .._rules.locate import event_brackets, event_point, first_event
 from .._rules.options import SolveOptions
 from .._rules.records import Detection
-from .._rules.save import saved_in_step
+from .._rules.save import saved_in_step, within_step
 from .._rules.start import carries_step, epoch_start
 from .._rules.status import stop_first
 from .._rules.step import nonfinite_step, step_stops
@@ -551,7 +551,7 @@ class Loop:
         rec_ys, rec_modes = saved
 
         def put_all(ys):
-            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts, sg(t), sg(t_next)))
+            vals = jax.vmap(interp.evaluate)(within_step(self.save_ts, t, t_next))
             return _put_rows(ys, mask, vals)
 
         S = self.save_ts.shape[0]
@@ -565,7 +565,7 @@ class Loop:
             # (`run`), a few rows per execution rather than a pass over all S.
             idx = i0 + jnp.arange(SAVE_WINDOW)
             idx_c = jnp.minimum(idx, S - 1)
-            vals = jax.vmap(interp.evaluate)(jnp.clip(self.save_ts[idx_c], sg(t), sg(t_next)))
+            vals = jax.vmap(interp.evaluate)(within_step(self.save_ts[idx_c], t, t_next))
             rows = jnp.where((idx < S) & mask[idx_c], idx, S)
             return ys.at[rows].set(vals, mode="drop")
 

@@ -22,7 +22,7 @@ functions and tests):
   the guard, `onto_the_guard`);
 - the jump: `blocks`, `jump_outcome`, `push_recent`, `zeno_completion`;
 - Zeno: `detect_zeno` (on one execution's window, or on lanes' windows, lanes last);
-- saving: `saved_in_step`;
+- saving: `saved_in_step`, `within_step` (a save time inside its step);
 - the precedence of statuses: `stop_first`.
 
 Event logic in detail:
@@ -74,6 +74,7 @@ from .records import JumpOutcome as JumpOutcome
 from .records import NonfiniteStep as NonfiniteStep
 from .records import ZenoCompletionStep as ZenoCompletionStep
 from .save import saved_in_step as saved_in_step
+from .save import within_step as within_step
 from .start import carries_step as carries_step
 from .start import departure_step_bound as departure_step_bound
 from .start import epoch_start as epoch_start
