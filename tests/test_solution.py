@@ -52,6 +52,17 @@ def test_evaluate_and_hybrid_time_domain():
     assert all(a.end == b.start for a, b in zip(epochs, epochs[1:], strict=False))
 
 
+def test_evaluate_is_differentiable_in_time_forward_and_reverse():
+    # dx/dt = F(x(t)) = (v, -g): in flight at 0.3 (v = -g t) and after the first impact at
+    # 0.6 (v = e sqrt(2 g h0) - g (t - t_1)); jax.jacfwd and jax.jacrev alike.
+    sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT)
+    t_1 = np.sqrt(2 / 9.8)
+    exact = np.array([[-9.8 * 0.3, -9.8], [0.8 * np.sqrt(2 * 9.8) - 9.8 * (0.6 - t_1), -9.8]])
+    for jac in (jax.jacfwd, jax.jacrev):
+        got = jax.jit(jax.vmap(jac(lambda s: sol.evaluate(s)[0])))(jnp.array([0.3, 0.6]))
+        np.testing.assert_allclose(got, exact, rtol=1e-8)
+
+
 def test_batched_solution_indexing_and_repr():
     run = jax.vmap(lambda h: hj.simulate(BALL, jnp.stack([h, 0.0 * h]), "flight", 0.0, 1.0,
                                          BALL_ARGS, max_epochs=4))

@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.status import STATUS_NAMES, Status
+from .._core.transforms import adjoint_for, derivative_modes
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
 from . import dense as _dense
@@ -197,7 +198,7 @@ class Solution(eqx.Module):
         (float32). Times outside [t0, final_time], and
         times inside the accumulating tail of a completed Zeno execution (the epoch that ends
         in a `ZenoCompletion` jump, which stands for infinitely many unsimulated bounces),
-        return `inf` and mode -1. Differentiable (in `t` too).
+        return `inf` and mode -1. Differentiable (in `t` too), in forward and reverse mode.
 
         **Many times.** `t` may be a 1-D array of N times (any order): the result is the states
         (N, n) and modes (N,), computed in one pass over the epochs, integrating each epoch's
@@ -244,6 +245,8 @@ class Solution(eqx.Module):
             term, solver, start_t, jnp.where(same, start_t + 1, t_end), None, start_x,
             args=self.args, saveat=diffrax.SaveAt(t1=True),
             stepsize_controller=stepsize_controller, max_steps=_dense.MAX_STEPS, throw=False,
+            # forward mode (jax.jvp, jax.jacfwd in t) needs a loop JAX differentiates forwards
+            adjoint=adjoint_for(diffrax.RecursiveCheckpointAdjoint(), derivative_modes()),
         )
         x = jnp.where(same, start_x, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
