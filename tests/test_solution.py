@@ -53,14 +53,16 @@ def test_evaluate_and_hybrid_time_domain():
 
 
 def test_evaluate_is_differentiable_in_time_forward_and_reverse():
-    # dx/dt = F(x(t)) = (v, -g): in flight at 0.3 (v = -g t) and after the first impact at
-    # 0.6 (v = e sqrt(2 g h0) - g (t - t_1)); jax.jacfwd and jax.jacrev alike.
+    # dx/dt = F(x(t)) = (v, -g): at t0 (v = 0), in flight at 0.3 (v = -g t), at the first
+    # impact's time itself (right-continuous: v = e sqrt(2 g h0), where no integration runs)
+    # and after it at 0.6 (v = e sqrt(2 g h0) - g (t - t_1)); jax.jacfwd and jax.jacrev alike.
     sol = hj.simulate(BALL, jnp.array([1.0, 0.0]), "flight", 0.0, 2.0, BALL_ARGS, stepsize_controller=TIGHT)
-    t_1 = np.sqrt(2 / 9.8)
-    exact = np.array([[-9.8 * 0.3, -9.8], [0.8 * np.sqrt(2 * 9.8) - 9.8 * (0.6 - t_1), -9.8]])
+    t_1, v_1 = np.sqrt(2 / 9.8), 0.8 * np.sqrt(2 * 9.8)
+    times = jnp.array([0.0, 0.3, float(sol.event_times[0]), 0.6])
+    exact = np.array([[0.0, -9.8], [-9.8 * 0.3, -9.8], [v_1, -9.8], [v_1 - 9.8 * (0.6 - t_1), -9.8]])
     for jac in (jax.jacfwd, jax.jacrev):
-        got = jax.jit(jax.vmap(jac(lambda s: sol.evaluate(s)[0])))(jnp.array([0.3, 0.6]))
-        np.testing.assert_allclose(got, exact, rtol=1e-8)
+        got = jax.jit(jax.vmap(jac(lambda s: sol.evaluate(s)[0])))(times)
+        np.testing.assert_allclose(got, exact, rtol=1e-8, atol=1e-12)
 
 
 def test_batched_solution_indexing_and_repr():

@@ -248,7 +248,13 @@ class Solution(eqx.Module):
             # forward mode (jax.jvp, jax.jacfwd in t) needs a loop JAX differentiates forwards
             adjoint=adjoint_for(diffrax.RecursiveCheckpointAdjoint(), derivative_modes()),
         )
-        x = jnp.where(same, start_x, sol.ys[-1])
+        # At the epoch's start the state is start_x itself, moving at the field's rate with t
+        # and against the start time, as the integration's state does elsewhere (a term of
+        # value zero: (t - t) - (t_i - t_i)).
+        sg = jax.lax.stop_gradient
+        moved = (t - sg(t)) - (start_t - sg(start_t))
+        at_start = start_x + kern.flow(mode, start_t, start_x, self.args) * moved
+        x = jnp.where(same, at_start, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
 
     def _repr_html_(self) -> str:
