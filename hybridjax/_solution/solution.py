@@ -250,9 +250,11 @@ class Solution(eqx.Module):
         )
         # At the epoch's start the state is start_x itself, moving at the field's rate with t
         # and against the start time, as the integration's state does elsewhere (a term of
-        # value zero: (t - t) - (t_i - t_i)).
+        # value zero: (t - t) - (t_i - t_i); a non-finite t, never inside, counts as t_i, so
+        # that no NaN reaches the flow's derivative through the masked branch).
         sg = jax.lax.stop_gradient
-        moved = (t - sg(t)) - (start_t - sg(start_t))
+        t_at = jnp.where(inside, t, start_t)
+        moved = (t_at - sg(t_at)) - (start_t - sg(start_t))
         at_start = start_x + kern.flow(mode, start_t, start_x, self.args) * moved
         x = jnp.where(same, at_start, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
