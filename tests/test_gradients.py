@@ -81,6 +81,15 @@ def test_derivatives_when_the_last_step_lands_on_t1_to_the_last_bit():
     np.testing.assert_allclose(jax.jacfwd(one)(p), exact, rtol=1e-12, atol=1e-12)
     J = jax.jacrev(batch)(p)
     np.testing.assert_allclose(J, np.stack([exact, exact]), rtol=1e-12, atol=1e-12)
+    # Adaptive steps made to end at a step time equal to t1 (diffrax's `step_ts`): the same
+    # tie, d (h, v)(t1) / d t1 = (v(t1), -g) and d final_time / d t1 = 1.
+    to_knots = diffrax.PIDController(rtol=1e-10, atol=1e-10, step_ts=jnp.array([0.5, 1.0]))
+
+    def ends(t1):
+        sol = hj.simulate(BALL, p[:2], "flight", 0.0, t1, {"g": 9.8, "e": 0.8}, stepsize_controller=to_knots)
+        return jnp.concatenate([sol.final_state, sol.final_time[None]])
+
+    np.testing.assert_allclose(jax.jacfwd(ends)(jnp.asarray(1.0)), [v1, -9.8, 1.0], rtol=1e-9)
 
 
 def test_derivatives_of_a_save_at_t1():

@@ -68,6 +68,7 @@ def test_a_step_that_lands_on_t1_takes_t1s_derivative():
     assert tuple(map(float, end(0.5, 0.25, 1.0))) == (0.75, 1.0)
     assert tuple(map(float, end(0.875, 0.25, 1.0))) == (1.0, 3.0)
     assert np.isnan(float(R.step_end(jnp.asarray(0.5), jnp.nan, 1.0)))  # as jnp.minimum's
+    assert np.isnan(float(R.step_end(jnp.asarray(0.5), 0.25, jnp.nan)))
     # clip_to_times: a jump time at t1 is not stepped to, and t1 keeps its tangent at the tie
     _, t_next, _ = jax.jvp(lambda t1: R.clip_to_times(jnp.asarray(0.5), jnp.asarray(1.0), t1, None,
                                                       jnp.array([1.0])), (jnp.asarray(1.0),), (jnp.asarray(3.0),))[1]

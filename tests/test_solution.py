@@ -63,6 +63,9 @@ def test_evaluate_is_differentiable_in_time_forward_and_reverse():
     for jac in (jax.jacfwd, jax.jacrev):
         got = jax.jit(jax.vmap(jac(lambda s: sol.evaluate(s)[0])))(times)
         np.testing.assert_allclose(got, exact, rtol=1e-8, atol=1e-12)
+    # and the second, d^2 x / dt^2 = (-g, 0), at the epochs' starts too
+    second = jax.jit(jax.vmap(jax.jacfwd(jax.jacfwd(lambda s: sol.evaluate(s)[0]))))(times)
+    np.testing.assert_allclose(second, np.tile([-9.8, 0.0], (4, 1)), rtol=1e-8, atol=1e-10)
 
 
 def test_batched_solution_indexing_and_repr():

@@ -23,14 +23,15 @@ def event_time_tol(event_tol, t, h, eps):
 def at_most_end(t_next, t1):
     """min(t_next, t1), with t1's derivative where they are equal.
 
-    A step that reaches the end time ends at t1, so the final state is the state at t1 and its
-    derivative holds t1 where t1 is held (the final time of a run is a parameter, not a
-    consequence of the trajectory). `jnp.minimum` gives each argument half the derivative at a
-    tie (`lax.min`'s balanced rule): where a proposed step lands on t1 to the last bit, the
-    final state's derivative would take half of t's (the last event time's) with it. A NaN
-    t_next stays NaN, as `jnp.minimum`'s, for the non-finite-step rule to see.
+    A step that reaches the end time ends at t1, so the final state is the state at t1, and
+    its derivative is t1's (the final time of a run is a parameter, not a consequence of the
+    trajectory). `jnp.minimum` gives each argument half the derivative at a tie (`lax.min`'s
+    balanced rule): where a proposed step lands on t1 to the last bit, the final state's
+    derivative would take half of t's (the last event time's) with it. Values are
+    `jnp.minimum`'s, NaN included (a NaN t_next or t1 stays NaN, for the non-finite-step rule
+    to see).
     """
-    return jnp.where(t_next >= t1, t1, t_next)
+    return jnp.where(t_next == t1, t1, jnp.minimum(t_next, t1))
 
 
 def step_end(t, h, t1):
@@ -75,7 +76,8 @@ def clip_to_times(t, t_next, t1, step_ts, jump_ts):
     made_jump = jnp.zeros(jnp.shape(t), bool)
     if step_ts is not None and step_ts.shape[0]:
         past, _ = _moved_past(step_ts, t_sg, jnp.inf)
-        t_next = jnp.minimum(t_next, _time_at(step_ts, jnp.searchsorted(step_ts, past, side="right")))
+        s = _time_at(step_ts, jnp.searchsorted(step_ts, past, side="right"))
+        t_next = jnp.where(s < t_next, s, t_next)  # t_next's derivative at a tie: t1's, for s = t1
     if jump_ts is not None and jump_ts.shape[0]:
         moved, made_jump = _moved_past(jump_ts, t_sg, t1)
         t = t + (moved - t_sg)  # the derivative of t kept

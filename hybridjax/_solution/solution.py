@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.status import STATUS_NAMES, Status
-from .._core.transforms import adjoint_for, derivative_modes
+from .._core.transforms import adjoint_for, derivative_modes, warn_if_forward_mode_beneath
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
 from . import dense as _dense
@@ -198,7 +198,9 @@ class Solution(eqx.Module):
         (float32). Times outside [t0, final_time], and
         times inside the accumulating tail of a completed Zeno execution (the epoch that ends
         in a `ZenoCompletion` jump, which stands for infinitely many unsimulated bounces),
-        return `inf` and mode -1. Differentiable (in `t` too), in forward and reverse mode.
+        return `inf` and mode -1. Differentiable (in `t` too), in forward and reverse mode
+        (forward mode where the JVP is taken outside any `jax.jit` around the call, as for
+        `simulate`: a JVP of a jitted `evaluate` warns).
 
         **Many times.** `t` may be a 1-D array of N times (any order): the result is the states
         (N, n) and modes (N,), computed in one pass over the epochs, integrating each epoch's
@@ -241,21 +243,27 @@ class Solution(eqx.Module):
         inside = (t >= self.t0) & (t <= self.final_time) & ~tail
         t_end = jnp.where(inside, jnp.maximum(t, start_t), start_t)
         same = t_end == start_t
+        adjoint = adjoint_for(diffrax.RecursiveCheckpointAdjoint(), derivative_modes())
+        warn_if_forward_mode_beneath(adjoint, "Solution.evaluate")
         sol = diffrax.diffeqsolve(
             term, solver, start_t, jnp.where(same, start_t + 1, t_end), None, start_x,
             args=self.args, saveat=diffrax.SaveAt(t1=True),
             stepsize_controller=stepsize_controller, max_steps=_dense.MAX_STEPS, throw=False,
             # forward mode (jax.jvp, jax.jacfwd in t) needs a loop JAX differentiates forwards
-            adjoint=adjoint_for(diffrax.RecursiveCheckpointAdjoint(), derivative_modes()),
+            adjoint=adjoint,
         )
-        # At the epoch's start the state is start_x itself, moving at the field's rate with t
-        # and against the start time, as the integration's state does elsewhere (a term of
-        # value zero: (t - t) - (t_i - t_i); a non-finite t, never inside, counts as t_i, so
-        # that no NaN reaches the flow's derivative through the masked branch).
+        # At the epoch's start the state is start_x itself, moving with t (and against the start
+        # time) as the integration's state does elsewhere, to second order: x + F m + F' m^2 / 2,
+        # F' = dF/dt along the flow, m = (t - t) - (t_i - t_i) of value zero (a t outside the
+        # run counts as t_i, so that no NaN reaches a derivative through the masked branch).
         sg = jax.lax.stop_gradient
         t_at = jnp.where(inside, t, start_t)
         moved = (t_at - sg(t_at)) - (start_t - sg(start_t))
-        at_start = start_x + kern.flow(mode, start_t, start_x, self.args) * moved
+        field = lambda tt, xx: kern.flow(mode, tt, xx, self.args)  # noqa: E731
+        F = field(start_t, start_x)
+        F_dot = jax.jvp(field, (start_t, start_x), (jnp.ones_like(start_t), F))[1]
+        F, F_dot = (jnp.where(jnp.isfinite(v), v, 0.0) for v in (F, F_dot))
+        at_start = start_x + moved * (F + 0.5 * moved * F_dot)
         x = jnp.where(same, at_start, sol.ys[-1])
         return jnp.where(inside, x, jnp.inf), jnp.where(inside, mode, -1)
 
