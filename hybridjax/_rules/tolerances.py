@@ -29,8 +29,7 @@ def at_most_end(t_next, t1):
     balanced rule): where a proposed step lands on t1 to the last bit, the final state's
     derivative would take half of t's (the last event time's) with it. Values are
     `jnp.minimum`'s, NaN included (a NaN t_next or t1 stays NaN, for the non-finite-step rule
-    to see); written as one selection, with no `jnp.minimum` inside, so that no branch's
-    derivative rule enters the program's second derivatives.
+    to see), written as one selection.
     """
     return jnp.where((t_next >= t1) | jnp.isnan(t1), t1, t_next)
 
