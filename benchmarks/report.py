@@ -223,7 +223,9 @@ def per_core(res: dict) -> list[str]:
                 f"Problem A (N = {res['n']:,}, Tsit5, rtol = atol = 1e-9) computed four ways, each on one core and "
                 "split over every core (one JAX CPU device per core: hybridjax through its `devices` option, the "
                 "others by hand, an equal part of the executions on each device), and a fifth, "
-                "`jax.vmap(hj.simulate)` (the way `simulate_batch` runs on a GPU), on one core; in one process, best of "
+                "`jax.vmap(hj.simulate)` (the way `simulate_batch` runs on a GPU), on one core, with `simulate_batch` "
+                "called directly (outside `jax.jit`) and the lock-step loop compiled with the XLA options such a "
+                "call uses (*wide vectors*); in one process, best of "
                 f"{res['rounds']} alternating runs. Every way is compiled with the problem's parameters as "
                 "constants; errors are against the closed form for every execution. *One core* is one JAX CPU "
                 "device: XLA may run a device's work on its pool of threads, one per core of the process (see "
@@ -236,6 +238,13 @@ def per_core(res: dict) -> list[str]:
                      f"{r['vs_closed_form_one_core']:.3f}", f"{same:.2f}", f"{r['error']:.0e}", r["wrong"]])
     out += _table(["way", "executions/s", "x the lock-step loop, one core", "x the closed form, one core",
                    "x the same way on one core", "max error", "wrong event counts"], body)
+    if "hybridjax, direct call, one core" in rows:
+        d, lk = rows["hybridjax, direct call, one core"], rows["diffrax lock-step loop, one core"]
+        lw = rows["diffrax lock-step loop, wide vectors, one core"]
+        out.append(f"- On one core, `simulate_batch` called directly (the program it compiles itself, XLA:CPU's loops "
+                   f"vectorized 512 bits wide) runs at {d['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
+                   f"and at {d['exec_per_s'] / lw['exec_per_s']:.2f}x the lock-step loop compiled with the same XLA "
+                   "options (`compiler_options={\"xla_cpu_prefer_vector_width\": 512}`; FAQ, Compile time).")
     if "hybridjax vmap(simulate), one core" in rows:
         v = rows["hybridjax vmap(simulate), one core"]
         out.append(f"- On one core, `jax.vmap(simulate)` runs at {v['vs_lockstep_one_core']:.2f}x the lock-step loop.")

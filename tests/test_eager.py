@@ -176,20 +176,25 @@ def test_forward_mode_through_a_jit_of_the_default_adjoint_names_the_fix():
 
 
 def test_the_compiler_options_of_a_direct_call_follow_its_executions_derivatives_and_backend():
-    # XLA:CPU's own fusion emitters for one execution on the CPU, undifferentiated, in forward
-    # mode, or in reverse mode alone; XLA's defaults for a batch, a reverse-mode derivative
-    # inside another derivative, or another backend.
-    from hybridjax._solve.eager import FAST_COMPILE_CPU, eager_compiler_options
+    # On the CPU: XLA:CPU's own fusion emitters for one execution, undifferentiated, in forward
+    # mode, or in reverse mode alone; wide vectors for a batch without reverse mode; XLA's
+    # defaults for a batch under reverse mode, a reverse-mode derivative inside another
+    # derivative, or another backend.
+    from hybridjax._solve.eager import FAST_COMPILE_CPU, WIDE_VECTORS_CPU, eager_compiler_options
 
     assert FAST_COMPILE_CPU == {"xla_cpu_use_fusion_emitters": False}
+    assert WIDE_VECTORS_CPU == {"xla_cpu_prefer_vector_width": 512}
     for modes in (frozenset(), frozenset({"forward"})):
         assert eager_compiler_options(True, modes, False, "cpu") == FAST_COMPILE_CPU
+        for one, batched in [(False, False), (True, True), (False, True)]:
+            assert eager_compiler_options(one, modes, batched, "cpu") == WIDE_VECTORS_CPU
     assert eager_compiler_options(True, frozenset({"reverse"}), False, "cpu", reverse_only=True) == FAST_COMPILE_CPU
-    for one, modes, batched, backend in [(False, frozenset(), False, "cpu"),
-                                         (True, frozenset(), True, "cpu"),
+    for one, modes, batched, backend in [(False, frozenset({"reverse"}), False, "cpu"),
+                                         (True, frozenset({"reverse"}), True, "cpu"),
                                          (True, frozenset({"reverse"}), False, "cpu"),
                                          (True, frozenset({"forward", "reverse"}), False, "cpu"),
-                                         (True, frozenset(), False, "gpu")]:
+                                         (True, frozenset(), False, "gpu"),
+                                         (False, frozenset(), False, "gpu")]:
         assert eager_compiler_options(one, modes, batched, backend) == {}
 
 
@@ -252,17 +257,18 @@ def test_an_option_xla_does_not_know_falls_back_to_the_defaults(monkeypatch):
     # A jaxlib whose XLA lacks the option: the direct call runs with XLA's defaults instead.
     from hybridjax._solve import eager
 
-    monkeypatch.setattr(eager, "_REFUSED", [])
+    monkeypatch.setattr(eager, "_REFUSED", set())
     f = lambda x: 2.0 * x + 1.0  # noqa: E731
-    unknown = jax.jit(f, compiler_options={"xla_cpu_no_such_option": False})
-    got = eager.with_default_options_if_refused(unknown, jax.jit(f), jnp.arange(3.0))
+    unknown_options = {"xla_cpu_no_such_option": False}
+    unknown = jax.jit(f, compiler_options=unknown_options)
+    got = eager.with_default_options_if_refused(unknown_options, unknown, jax.jit(f), jnp.arange(3.0))
     np.testing.assert_array_equal(got, [1.0, 3.0, 5.0])
-    assert eager._REFUSED == [True]
-    # A known option is used, and an error of the call itself is not taken for a refusal.
-    monkeypatch.setattr(eager, "_REFUSED", [])
+    assert eager._REFUSED == {(("xla_cpu_no_such_option", False),)}
+    # A known option is used (also after another set was refused), and an error of the call
+    # itself is not taken for a refusal.
     known = jax.jit(f, compiler_options=eager.FAST_COMPILE_CPU)
-    np.testing.assert_array_equal(eager.with_default_options_if_refused(known, None, jnp.arange(3.0)),
-                                  [1.0, 3.0, 5.0])
-    assert eager._REFUSED == []
+    np.testing.assert_array_equal(eager.with_default_options_if_refused(eager.FAST_COMPILE_CPU, known, None,
+                                                                        jnp.arange(3.0)), [1.0, 3.0, 5.0])
+    assert len(eager._REFUSED) == 1
     with pytest.raises(TypeError):
-        eager.with_default_options_if_refused(known, jax.jit(f), "not an array")
+        eager.with_default_options_if_refused(eager.FAST_COMPILE_CPU, known, jax.jit(f), "not an array")

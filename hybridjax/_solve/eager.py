@@ -29,7 +29,9 @@ with XLA:CPU's own fusion emitters instead of its MLIR fusion emitters
 (`eager_compiler_options`): most of such a program's compile time is spent compiling its
 kernels one by one, which these emitters do in one half to two thirds of the time, and a
 single execution runs as fast (its reverse-mode derivative up to a tenth slower, against the
-seconds its first call saves). Batches keep the default, which runs them faster. JAX accepts
+seconds its first call saves). A batch keeps the MLIR emitters, which run it faster, and lets
+LLVM vectorize its loops over the executions 512 bits wide (`WIDE_VECTORS_CPU`), except under
+reverse mode, whose programs run slower so. JAX accepts
 a program's own options only on a program it compiles as called, not on one it records while
 differentiating, so under one reverse-mode derivative (`jax.grad`, `jax.vjp`, `jax.jacrev`)
 the call is a custom VJP whose forward pass (the solve with `jax.vjp`'s residuals) and
@@ -129,21 +131,33 @@ def _options_as_object(bound: inspect.BoundArguments, where: str) -> None:
 # its MLIR ones (`eager_compiler_options`); an option of the one program, not of the process.
 FAST_COMPILE_CPU = {"xla_cpu_use_fusion_emitters": False}
 
+# XLA options under which LLVM's loop vectorizer may use 512-bit vectors (XLA:CPU's default is
+# 256; on a CPU without AVX-512 each is two 256-bit instructions, so the loop over the lanes
+# is unrolled twice). A batch's kernels are loops over thousands of executions: with it the
+# batched engine and `jax.vmap(simulate)` ran 7-14 % faster on the CPUs measured, a batch's
+# reverse-mode derivative 3 % slower (FAQ: Compile time, compiler settings).
+WIDE_VECTORS_CPU = {"xla_cpu_prefer_vector_width": 512}
+
 
 def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool, backend: str,
                            reverse_only: bool = False) -> dict:
-    """The XLA compiler options of the program compiled for a call made outside `jax.jit`:
-    `FAST_COMPILE_CPU` for a call that runs one execution (`one_execution`, and not `batched`
-    under `jax.vmap`) on the `"cpu"` backend, with no reverse-mode derivative in `modes` or
-    with reverse mode alone (`reverse_only`: one linearize trace at the call); else none
-    (XLA's defaults).
+    """The XLA compiler options of the program compiled for a call made outside `jax.jit`, on the
+    `"cpu"` backend (elsewhere none: XLA's defaults):
 
-    One execution's programs compile in one half to two thirds of the XLA time with them (docs:
-    First call); forward and forward-mode programs run as fast, reverse-mode ones up to a tenth
-    slower; batches run slower with them (docs: Compile time)."""
-    if one_execution and not batched and backend == "cpu" and ("reverse" not in modes or reverse_only):
-        return dict(FAST_COMPILE_CPU)
-    return {}
+    - `FAST_COMPILE_CPU` for a call that runs one execution (`one_execution`, and not `batched`
+      under `jax.vmap`) with no reverse-mode derivative in `modes` or with reverse mode alone
+      (`reverse_only`: one linearize trace at the call). One execution's programs compile in one
+      half to two thirds of the XLA time with them (docs: First call); forward and forward-mode
+      programs run as fast, reverse-mode ones up to a tenth slower.
+    - `WIDE_VECTORS_CPU` for a batch (`simulate_batch`, or a call under `jax.vmap`) without a
+      reverse-mode derivative, which runs faster with them.
+    - None otherwise (a reverse-mode derivative of a batch, or one nested in another derivative).
+    """
+    if backend != "cpu":
+        return {}
+    if one_execution and not batched:
+        return dict(FAST_COMPILE_CPU) if "reverse" not in modes or reverse_only else {}
+    return dict(WIDE_VECTORS_CPU) if "reverse" not in modes else {}
 
 
 def _reverse_with_options(traced: Callable, primal: Callable, options: dict) -> Callable:
@@ -186,21 +200,23 @@ def _reverse_with_options(traced: Callable, primal: Callable, options: dict) -> 
     return lambda args, kwargs, context: run((args, kwargs), context)
 
 
-# Whether this process's XLA refused an option of `FAST_COMPILE_CPU` (a jaxlib without it).
-_REFUSED: list[bool] = []
+# The option sets this process's XLA refused (a jaxlib without one of their options).
+_REFUSED: set[tuple] = set()
 
 
-def with_default_options_if_refused(with_options: Callable, default: Callable, *args):
-    """`with_options(*args)`, a function compiled with extra XLA options; `default(*args)` where
-    XLA does not know one of them ("No such compile option": a jaxlib older or newer than the
-    option), and from then on in the process, so that a direct call never fails for it."""
-    if not _REFUSED:
+def with_default_options_if_refused(options: dict, with_options: Callable, default: Callable, *args):
+    """`with_options(*args)`, a function compiled with the extra XLA `options`; `default(*args)`
+    where XLA does not know one of them ("No such compile option": a jaxlib older or newer than
+    the option), and from then on in the process for that set, so that a direct call never fails
+    for it."""
+    key = tuple(sorted(options.items()))
+    if key not in _REFUSED:
         try:
             return with_options(*args)
         except jax.errors.JaxRuntimeError as err:
             if "No such compile option" not in str(err):
                 raise
-            _REFUSED.append(True)
+            _REFUSED.add(key)
     return default(*args)
 
 
@@ -229,9 +245,15 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                 _TIME_SPAN_CHECKED.reset(token)
 
         # One compiled wrapper per set of compiler options (a jit's options are fixed).
-        compiled = {False: eqx.filter_jit(traced),
-                    True: eqx.filter_jit(traced, compiler_options=FAST_COMPILE_CPU)}
-        reverse_compiled = _reverse_with_options(traced, compiled[True], FAST_COMPILE_CPU)
+        compiled = {(): eqx.filter_jit(traced)}
+
+        def program(options: dict) -> Callable:
+            key = tuple(sorted(options.items()))
+            if key not in compiled:
+                compiled[key] = eqx.filter_jit(traced, compiler_options=options)
+            return compiled[key]
+
+        reverse_compiled = _reverse_with_options(traced, program(FAST_COMPILE_CPU), FAST_COMPILE_CPU)
 
         @functools.wraps(fn)
         def call(*args, **kwargs):
@@ -260,16 +282,18 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                 check_time_span(t0, t1, fn.__name__, given=(t0, t1))
             try:
                 reverse_only, batched = reverse_only_at_call(), batched_at_call()
-                fast = bool(eager_compiler_options(one_execution, modes, batched,
-                                                   jax.default_backend(), reverse_only))
+                options = eager_compiler_options(one_execution, modes, batched, jax.default_backend(),
+                                                 reverse_only)
+                context = (modes, checked, batched)
                 # JAX differentiates the compiled call here, where a forward-mode derivative
                 # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
                 with naming_the_forward_mode_fix():
-                    if fast:
-                        with_options = reverse_compiled if "reverse" in modes else compiled[True]
-                        return with_default_options_if_refused(with_options, compiled[False], call_args,
-                                                               call_kwargs, (modes, checked, batched))
-                    return compiled[False](call_args, call_kwargs, (modes, checked, batched))
+                    if options:
+                        # Reverse mode with options: one execution's (`FAST_COMPILE_CPU`) alone.
+                        with_options = reverse_compiled if "reverse" in modes else program(options)
+                        return with_default_options_if_refused(options, with_options, program({}),
+                                                               call_args, call_kwargs, context)
+                    return program({})(call_args, call_kwargs, context)
             except _NEEDS_CONCRETE:
                 pass
             return fn(*bound.args, **bound.kwargs)
