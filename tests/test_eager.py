@@ -272,3 +272,21 @@ def test_an_option_xla_does_not_know_falls_back_to_the_defaults(monkeypatch):
     assert len(eager._REFUSED) == 1
     with pytest.raises(TypeError):
         eager.with_default_options_if_refused(eager.FAST_COMPILE_CPU, known, jax.jit(f), "not an array")
+
+
+def test_a_repeated_direct_call_reuses_its_options_object_and_types_keep_them_apart():
+    # The SolveOptions built from the keyword shorthands are kept by the values and their types.
+    import inspect
+
+    from hybridjax._solve.eager import _options_as_object
+
+    def built(**shorthands):
+        bound = inspect.signature(lambda options=None, **shorthands: None).bind(**shorthands)
+        _options_as_object(bound, "simulate")
+        return bound.arguments["options"]
+
+    first, again = built(max_epochs=8, zeno=True), built(max_epochs=8, zeno=True)
+    assert first is again and first.max_epochs == 8
+    assert built(max_epochs=8, zeno=False) is not first
+    assert built(max_epochs=8, event_tol=1e-9) is not built(max_epochs=8, event_tol=np.float64(1e-9))
+    assert built(max_epochs=8, event_tol=jnp.asarray(1e-9)).max_epochs == 8  # an array: built anew

@@ -53,15 +53,16 @@ def check_time_span(t0, t1, where: str, given: tuple):
     execution, like every other stop. No host callback enters the program, which keeps it
     cacheable by JAX's persistent compilation cache. Inside a call compiled by
     `compiled_when_eager` the check was made at its call."""
+    # "Not before" as a NumPy constant: no array to dispatch at a direct call's check.
     if take_time_span_check():
-        return t1, jnp.zeros(jnp.shape(t1), bool)
+        return t1, np.zeros(np.shape(t1), bool)
     try:
         bad = bool(np.any(np.asarray(given[1]) < np.asarray(given[0])))
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
         return jnp.maximum(t1, t0), t1 < t0
     if bad:
         raise ValueError(f"{where}: t1 must be >= t0.")
-    return t1, jnp.zeros(jnp.shape(t1), bool)
+    return t1, np.zeros(np.shape(t1), bool)
 
 
 def _abstract_shape(fn, dim: int, args: Any, dtype) -> jax.ShapeDtypeStruct:
