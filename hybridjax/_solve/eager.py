@@ -152,9 +152,14 @@ FAST_COMPILE_CPU = {"xla_cpu_use_fusion_emitters": False}
 # XLA options under which LLVM's loop vectorizer may use 512-bit vectors (XLA:CPU's default is
 # 256; on a CPU without AVX-512 each is two 256-bit instructions, so the loop over the lanes
 # is unrolled twice). A batch's kernels are loops over thousands of executions: with it the
-# batched engine and `jax.vmap(simulate)` ran 7-14 % faster on the CPUs measured, a batch's
-# reverse-mode derivative 3 % slower (FAQ: Compile time, compiler settings).
+# batched engine, `jax.vmap(simulate)` and their forward-mode derivatives run faster, a batch's
+# reverse-mode derivative slower (FAQ: Compile time, "Batches: wider vectors").
 WIDE_VECTORS_CPU = {"xla_cpu_prefer_vector_width": 512}
+
+
+def _options_key(options: dict) -> tuple:
+    """A set of XLA options as a hashable key."""
+    return tuple(sorted(options.items()))
 
 
 def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool, backend: str,
@@ -227,7 +232,7 @@ def with_default_options_if_refused(options: dict, with_options: Callable, defau
     where XLA does not know one of them ("No such compile option": a jaxlib older or newer than
     the option), and from then on in the process for that set, so that a direct call never fails
     for it."""
-    key = tuple(sorted(options.items()))
+    key = _options_key(options)
     if key not in _REFUSED:
         try:
             return with_options(*args)
@@ -266,7 +271,7 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
         compiled = {(): eqx.filter_jit(traced)}
 
         def program(options: dict) -> Callable:
-            key = tuple(sorted(options.items()))
+            key = _options_key(options)
             if key not in compiled:
                 compiled[key] = eqx.filter_jit(traced, compiler_options=options)
             return compiled[key]
