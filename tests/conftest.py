@@ -4,14 +4,15 @@ import os
 # are turned off, which compiles ~3x faster (most of the suite's time is compiling) and runs the
 # small test problems slower, with the same IEEE operations (no fast-math either way) rounded in
 # another order in places (benchmarks/compile_time.py checks the default setting against the
-# closed form). XLA:CPU's concurrency-optimised thunk schedule is turned off too: with the first
-# two flags alone, jaxlib 0.10.2 ran some programs with results that depend on its threads
-# (docs: FAQ, "Compile time"). Set before jax creates its CPU backend; notebook kernels started
-# by tests inherit it.
+# closed form). XLA:CPU's concurrency-optimised thunk schedule is turned off too, and each test
+# process runs on one core (`pytest_configure`): at optimisation level 0, jaxlib 0.10.2 ran
+# some programs with results that depend on its threads (docs: FAQ, "Compile time"). Set before
+# jax creates its CPU backend; notebook kernels started by tests inherit both.
 os.environ["XLA_FLAGS"] = " ".join(
     [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false",
      "--xla_cpu_enable_concurrency_optimized_scheduler=false"]
 ).strip()
+
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -19,6 +20,24 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+def pytest_configure(config):
+    """Pin this test process (each pytest-xdist worker) to one core of its own.
+
+    Under the flags above, XLA:CPU still runs independent parts of one program concurrently on
+    its thread pool, and jaxlib 0.10.2 gave a batch of 4,096 bouncing balls 206 wrong bounce
+    counts with two threads (docs: FAQ, "Compile time"); with one schedulable core XLA sizes
+    its pool to one thread. Two workers on a 2-core machine use the two cores as before. Called
+    before jax creates its CPU backend (at the first array, after configuration), which reads
+    the affinity once."""
+    workerinput = getattr(config, "workerinput", None)
+    if not hasattr(os, "sched_setaffinity") or (workerinput is None and getattr(config.option, "numprocesses", None)):
+        return  # pytest-xdist's controller runs no test; its workers inherit its cores
+    cores = sorted(os.sched_getaffinity(0))
+    worker = (workerinput or {}).get("workerid", "gw0")  # "gw0", "gw1", ...
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    os.sched_setaffinity(0, {cores[index % len(cores)]})
 
 
 @pytest.fixture(autouse=True)

@@ -103,3 +103,55 @@ def test_the_default_and_a_checkpoint_budget_give_the_same_gradient():
     # two programs of one gradient: they differ by their roundings alone
     np.testing.assert_allclose(own[0], budget[0], rtol=1e-11)
     np.testing.assert_allclose(own[1], budget[1], rtol=1e-11)
+
+
+@jax.custom_jvp
+def _step_size(x):
+    """0.3, and 0.24 where the body is linearised: a recomputation that rounds otherwise than
+    the forward pass, exaggerated (its steps differ from the forward pass's)."""
+    return 0.3 + 0.0 * x
+
+
+@_step_size.defjvp
+def _step_size_jvp(primals, tangents):
+    return 0.24 + 0.0 * primals[0], 0.0 * tangents[0]
+
+
+def _decay_to_one(a, max_steps, step_size=_step_size):
+    """x' = a x from x(0) = 1 in steps of `step_size` up to t = 1: x(1) = e^a however it steps."""
+    def body(c):
+        t, x, done = c
+        t_next = jnp.minimum(t + jax.lax.stop_gradient(step_size(x)), 1.0)
+        return t_next, x * jnp.exp(a * (t_next - t)), t_next >= 1.0
+
+    c = checkpointed_while_loop(lambda c: ~c[2], body, (jnp.zeros(()), jnp.ones(()), jnp.array(False)),
+                                max_steps=max_steps, checkpoints=None,
+                                differentiated=lambda carry: [False, True, False])
+    return c[1]
+
+
+def test_a_recomputed_last_segment_runs_on_to_the_loops_end():
+    # The forward pass ends at t = 1 after 4 steps of 0.3; recomputed in steps of 0.24, 4 steps
+    # end at t = 0.96 and the gradient would be 0.96 e^(0.96 a): the recomputation goes on to
+    # t = 1 (5 steps), where d x(1) / da = e^a.
+    a = jnp.asarray(0.7)
+    assert float(_decay_to_one(a, 40)) == pytest.approx(np.exp(0.7), rel=1e-14)
+    assert float(jax.grad(_decay_to_one)(a, 40)) == pytest.approx(np.exp(0.7), rel=1e-13)
+
+
+def test_a_loop_stopped_at_max_steps_is_recomputed_to_the_same_step():
+    # Two steps of 0.3 where max_steps = 2: x(0.6) = e^(0.6 a). The loop's condition still holds
+    # at its end, which is not the end of the run: the recomputation stops where it stopped.
+    a = jnp.asarray(0.7)
+    grad = jax.grad(_decay_to_one)(a, 2, lambda x: 0.3 + 0.0 * x)
+    assert float(grad) == pytest.approx(0.6 * np.exp(0.42), rel=1e-13)
+
+
+def test_recomputed_length():
+    from hybridjax._engines.checkpointed import FINISH, recomputed_length
+    def running():
+        return jnp.array(True)
+    assert bool(recomputed_length(2, 3, False, running)) and not bool(recomputed_length(3, 3, False, running))
+    assert bool(recomputed_length(3 + FINISH - 1, 3, True, running))
+    assert not bool(recomputed_length(3 + FINISH, 3, True, running))
+    assert not bool(recomputed_length(3, 3, True, lambda: jnp.array(False)))

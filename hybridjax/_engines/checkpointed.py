@@ -10,7 +10,8 @@ Checkpoints every k iterations: the forward pass stores the carry at iterations 
 segments from the last to the first, recomputes a segment's at most k iterations from its
 checkpoint, and pulls the cotangent back through them one at a time. Every iteration is
 recomputed once; the memory is S + k carries (or residuals), k = ceil(sqrt(max_steps)) unless a
-number of checkpoints S is given. The loop's own condition is one decision for a whole
+number of checkpoints S is given; the last segment is recomputed until the loop's condition
+ends it (`recomputed_length`). The loop's own condition is one decision for a whole
 `jax.vmap` batch (the caller's), so the iteration count and the segments are too.
 
 What the recomputation keeps (`keep`):
@@ -45,6 +46,27 @@ def segment_length(max_steps: int, checkpoints: int | None) -> int:
     if checkpoints is None:
         return max(1, math.ceil(math.sqrt(max_steps)))
     return max(1, math.ceil(max_steps / checkpoints))
+
+
+# Iterations the backward pass may add to the forward pass's last segment (`recomputed_length`).
+FINISH = 4
+
+
+def recomputed_length(t, length, last: jax.Array | bool, running: Callable) -> jax.Array:
+    """Whether the backward pass recomputes iteration t of a segment of `length` forward
+    iterations: every one of them, and in the last segment, while the loop's condition still
+    holds (`running()`), up to `FINISH` more.
+
+    A recomputation is the body's program compiled again (under the linearisation, or inside a
+    derivative of the derivative); where XLA rounds it otherwise, an adaptive solve recomputed
+    from a checkpoint takes steps that differ at rounding level, and its last step may stop
+    short of where the forward pass's ended (a run recomputed one step short of its end time
+    t1 pulls the final state's cotangent back from a state before t1). Running the last segment
+    to the loop's end linearises a run that ends where the forward pass's did; a recomputation
+    that ends sooner than the forward pass is unchanged by its remaining iterations (the body
+    leaves a finished run as it is). A forward pass stopped by `max_steps` is recomputed to the
+    same iteration."""
+    return (t < length) | (last & (t < length + FINISH) & running())
 
 
 def _split(leaves, mask):
@@ -216,7 +238,9 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
         def segment(s):
             j, ct_d, ct_k = s
             start = packing.unpack([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
+            # The last segment runs on to the loop's end (`recomputed_length`).
             length = jnp.minimum(k, n - j * k)
+            last = (j == first) & (n < max_steps)  # the forward pass ended by its condition
 
             def recompute(r):
                 t, ls, kept = r
@@ -224,8 +248,12 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
                 kept = [lax.dynamic_update_index_in_dim(b, x, t, 0) for b, x in zip(kept, item, strict=True)]
                 return t + 1, ls, kept
 
-            kept = [jnp.zeros((k,) + a.shape, a.dtype) for a in kept_avals]
-            kept = lax.while_loop(lambda r: r[0] < length, recompute, (jnp.array(0), start, kept))[2]
+            def more(r):
+                return recomputed_length(r[0], length, last, lambda: cond_fun(jtu.tree_unflatten(
+                    tree, with_statics(r[1]))))
+
+            kept = [jnp.zeros((k + FINISH,) + a.shape, a.dtype) for a in kept_avals]
+            length, _, kept = lax.while_loop(more, recompute, (jnp.array(0), start, kept))
 
             def back(r):
                 t, ct_d, ct_k = r
