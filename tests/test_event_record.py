@@ -1,10 +1,11 @@
 """The event record stored by dtype (`_engines.event_record`): the `Solution`'s arrays read back
-from it are the values written, in their places, and untouched entries keep the padding."""
+from it are the values written, in their places, untouched entries keep the padding, and the
+scratch slot is left out."""
 
 import jax.numpy as jnp
 import numpy as np
 
-from hybridjax._engines.event_record import empty_events, event_rows, solution_arrays
+from hybridjax._engines.event_record import empty_events, event_rows, solution_arrays, with_scratch
 
 
 def test_events_written_by_rows_read_back_as_the_solution_arrays():
@@ -14,10 +15,11 @@ def test_events_written_by_rows_read_back_as_the_solution_arrays():
     before, after = rng.normal(size=(2, n)), rng.normal(size=(2, n))
     k, target = np.array([1, 0]), np.array([2, 5])
     sim, graz, inside = np.array([True, False]), np.array([False, True]), np.array([True, True])
-    real, index, flag = empty_events((E,), n, jnp.float64)
+    real, index, flag = empty_events((E + 1,), n, jnp.float64)  # E events and the scratch slot
     rows = np.array([0, 2])  # events 0 and 2 written, 1 and 3 left empty
     values = event_rows(t, before, after, k, target, sim, graz, inside, jnp.float64)
     real, index, flag = (a.at[rows].set(v) for a, v in zip((real, index, flag), values, strict=True))
+    real, index, flag = (a.at[E].set(v[0]) for a, v in zip((real, index, flag), values, strict=True))  # scratch
     out = solution_arrays(real, index, flag, jnp.int32(7))
 
     np.testing.assert_array_equal(out["event_times"][rows], t)
@@ -37,7 +39,8 @@ def test_events_written_by_rows_read_back_as_the_solution_arrays():
 
 def test_a_record_of_executions_and_of_no_events_keeps_the_solution_shapes():
     N, n = 3, 2
-    real, index, flag = empty_events((N, 0), n, jnp.float32)
+    real, index, flag = with_scratch(*empty_events((N, 0), n, jnp.float32))
+    assert real.shape == (N, 1, 1 + 2 * n) and np.all(np.isinf(real))
     out = solution_arrays(real, index, flag, jnp.arange(N, dtype=jnp.int32))
     assert out["event_times"].shape == (N, 0) and out["event_times"].dtype == jnp.float32
     assert out["states_before"].shape == (N, 0, n)

@@ -176,3 +176,16 @@ def test_evaluate_rejects_batches_and_higher_rank_times(ball_six_bounces):
     batch = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), sol)
     with pytest.raises(ValueError, match="`evaluate` works on one execution"):
         batch.evaluate(np.array([0.1, 0.2]))
+
+
+def test_the_event_arrays_are_read_off_the_record_with_the_batch_axes_leading():
+    # The event arrays are properties over the packed record: under jax.eval_shape they have the
+    # shapes of the documented arrays; a batch axis moved behind the record's (out_axes=-1)
+    # is refused with the fix, not read as events.
+    one = lambda x: hj.simulate(BALL, x, "flight", 0.0, 2.0, BALL_ARGS, max_epochs=8)  # noqa: E731
+    sol = jax.eval_shape(jax.vmap(one), jnp.zeros((3, 2)))
+    assert sol.event_times.shape == (3, 8) and sol.states_after.shape == (3, 8, 2)
+    assert sol.epoch_modes.shape == (3, 9) and sol.inside_guard.dtype == jnp.bool_
+    moved = jax.eval_shape(jax.vmap(one, out_axes=-1), jnp.zeros((3, 2)))
+    with pytest.raises(ValueError, match="out_axes=-1"):
+        moved.event_times  # noqa: B018

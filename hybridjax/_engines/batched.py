@@ -400,7 +400,7 @@ class BatchedLoop:
             # without an execution write; no gradient, as each entry is overwritten once.
             unrun = _stop(self.fresh(jnp.arange(N + 1), N), (jnp.ones((N + 1,), bool), Status.MAX_STEPS))
             finals = sg(Finals.of(unrun))
-        rec = LaneRecord.empty(N, E, n, dtype, mode0, ys, saved_modes, finals)
+        rec = LaneRecord.empty(N, E, n, dtype, ys, saved_modes, finals)
         return st, rec
 
     # ------------------------------------------------------------------ refill
@@ -432,11 +432,13 @@ class BatchedLoop:
     def record(self, st: Lanes, rec: LaneRecord, kept, k, t_ev, target, y_before, y_after,
                simultaneous=None, grazing=None, inside=None) -> LaneRecord:
         """`rec` with event k at t_ev written as the next event (`num_events`) of the lanes in
-        `kept` (the others write to the row not returned). `st` is the block of lanes
-        (`on_block`) the events can happen on: the record is written from those alone."""
-        row = jnp.where(kept, st.num_events, 0)
-        # num_exec: the row not returned (lanes without a kept event, a block's spare slots).
-        ids = jnp.where(kept, st.exec_id, self.num_exec)
+        `kept` (the others write to the scratch column E of an execution's row). `st` is the
+        block of lanes (`on_block`) the events can happen on: the record is written from those
+        alone."""
+        row = jnp.where(kept, st.num_events, self.max_epochs)
+        # A lane without a kept event (a block's spare slot, a lane past the last execution:
+        # exec_id N) writes to the scratch column of a row in bounds.
+        ids = jnp.minimum(st.exec_id, self.num_exec - 1)
         no = jnp.zeros_like(kept)
         rows = event_rows(t_ev, y_before.T, y_after.T, k, target, *(no if f is None else f
                                                                    for f in (simultaneous, grazing, inside)),

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 
 from .._core.status import Status
-from .event_record import empty_events, solution_arrays
+from .event_record import empty_events
 
 
 class Lanes(eqx.Module):
@@ -60,29 +60,26 @@ class Finals(eqx.Module):
 class LaneRecord(eqx.Module):
     """The events of the executions (executions first, stored by dtype: `event_record`), written
     in place by one scatter per dtype in iterations with events; the loop's output is the
-    record itself, not a copy. `fields` reads the `Solution`'s arrays off it once, at the end:
-    the one copy of the record a call makes."""
+    record itself, and the `Solution` keeps it as it is (`fields`): a call on one device copies
+    none of it."""
 
-    # (N + 1, E, 1 + 2n): event time, state before, state after. Row N takes the writes of
-    # events not kept (`BatchedLoop.jump`); E >= 1.
+    # (N, E + 1, 1 + 2n): event time, state before, state after. Column E takes the writes of
+    # events not kept (`BatchedLoop.record`): every write in bounds, since a loop buffer's
+    # reverse pass reads each written index back (out of bounds: NaN), and with writes out of
+    # bounds, runs under XLA:CPU's optimization level 0 with its fusion emitters off came out
+    # wrong. The `Solution` keeps the column and reads the first E (`event_record`).
     real: jax.Array
-    index: jax.Array  # (N + 1, E, 2) int32: transition, the mode of the epoch it starts
-    flag: jax.Array  # (N + 1, E, 3) bool: simultaneous, grazing, inside the guard
-    first_modes: jax.Array  # (N,) int32: each execution's initial mode (not written in the loop)
+    index: jax.Array  # (N, E + 1, 2) int32: transition, the mode of the epoch it starts
+    flag: jax.Array  # (N, E + 1, 3) bool: simultaneous, grazing, inside the guard
     ys: jax.Array  # (N, S, n) saved states
     saved_modes: jax.Array  # (N, S)
     finals: Finals | None  # with fewer lanes than executions; else the lanes' own state
 
     @classmethod
-    def empty(cls, num_exec: int, max_epochs: int, n: int, dtype, mode0, ys, saved_modes,
-              finals) -> "LaneRecord":
-        """A record without events (`empty_events`), with one more row, execution N, and at
-        least one column: events not kept are written there, not dropped out of bounds, since
-        a loop buffer's reverse pass reads every written index back and an out-of-bounds read
-        is NaN."""
-        real, index, flag = empty_events((num_exec + 1, max(max_epochs, 1)), n, dtype)
-        return cls(real=real, index=index, flag=flag, first_modes=jnp.asarray(mode0, jnp.int32), ys=ys,
-                   saved_modes=saved_modes, finals=finals)
+    def empty(cls, num_exec: int, max_epochs: int, n: int, dtype, ys, saved_modes, finals) -> "LaneRecord":
+        """A record without events (`empty_events`), with the scratch column E."""
+        real, index, flag = empty_events((num_exec, max_epochs + 1), n, dtype)
+        return cls(real=real, index=index, flag=flag, ys=ys, saved_modes=saved_modes, finals=finals)
 
     def buffers(self) -> list:
         """The event and final-value arrays, selected by attribute as `eqxi.while_loop`'s
@@ -94,11 +91,10 @@ class LaneRecord(eqx.Module):
             return events
         return events + [getattr(finals, f) for f in Finals.__dataclass_fields__]
 
-    def fields(self, num_exec: int, max_epochs: int) -> dict:
-        """The `Solution` fields: the arrays without their last row (and, for max_epochs = 0,
-        column), where writes that are not kept land (see `BatchedLoop.jump`)."""
-        real, index, flag = (a[:num_exec, :max_epochs] for a in (self.real, self.index, self.flag))
-        return dict(**solution_arrays(real, index, flag, self.first_modes[:num_exec]), ys=self.ys,
+    def fields(self) -> dict:
+        """The `Solution` fields: the record itself, scratch column included (the `Solution`
+        reads around it)."""
+        return dict(events_real=self.real, events_index=self.index, events_flag=self.flag, ys=self.ys,
                     saved_modes=self.saved_modes)
 
 

@@ -14,6 +14,7 @@ from .._core.status import STATUS_NAMES, Status
 from .._core.transforms import adjoint_for, derivative_modes, warn_if_forward_mode_beneath
 from .._definition.kernels import Kernels
 from .._definition.system import HybridSystem
+from .._engines.event_record import event_field
 from . import dense as _dense
 
 
@@ -63,7 +64,8 @@ class Solution(eqx.Module):
     constant, so it never carries a gradient. States are padded to the system's largest
     dimension; mode I's state is the first n_I components.
 
-    **Fields:**
+    **Contents** (the event arrays, `event_times` ... `inside_guard`, are read-only properties,
+    read off the event record; see below):
 
     - `event_times` (E,): t_2, t_3, ... the times at which transitions fired.
     - `num_events`: the number of transitions taken.
@@ -94,17 +96,25 @@ class Solution(eqx.Module):
       state is the pre-event one.
     - `num_steps`, `num_rejected`: solver steps attempted and rejected.
     - `t0`, `x0`, `mode0`, `args`, `system`: the problem, kept for `evaluate`.
+
+    The event arrays are read, where they are asked for, off the event record the engines
+    write, kept in three arrays by dtype (`events_real`: each event's time and states
+    side by side; `events_index`: its transition and the mode of the epoch it starts;
+    `events_flag`: its three flags; `max_epochs + 1` slots, the last a scratch slot that the
+    event arrays leave out): a program that returns a `Solution` does not copy the
+    record into eight arrays, and inside `jax.jit` an event array that is not read is not
+    computed. They are properties, so `eqx.tree_at` reaches them through these three (and
+    `epoch_modes[0]` through `mode0`); a transformation of the leaves must keep the batch
+    axes leading (the record's last two axes are events and values).
     """
 
-    event_times: Float[Array, "*batch epochs"]
+    # The event record as the engines write it, by dtype (`_engines.event_record`); the event
+    # arrays above are read off it (`event_times` ... `inside_guard`, properties).
+    # E + 1 slots each: the last is scratch, where the batched engine writes events not kept.
+    events_real: Float[Array, "*batch epochs_plus_one two_dim_plus_one"]  # time, x(t_i^-), x(t_i^+)
+    events_index: Int[Array, "*batch epochs_plus_one 2"]  # transition, the mode of the epoch it starts
+    events_flag: Bool[Array, "*batch epochs_plus_one 3"]  # simultaneous, grazing, inside the guard
     num_events: Int[Array, "*batch"]
-    epoch_modes: Int[Array, "*batch epochs_plus_one"]
-    transitions: Int[Array, "*batch epochs"]
-    states_before: Float[Array, "*batch epochs dim"]
-    states_after: Float[Array, "*batch epochs dim"]
-    simultaneous: Bool[Array, "*batch epochs"]
-    grazing: Bool[Array, "*batch epochs"]
-    inside_guard: Bool[Array, "*batch epochs"]
     zeno_time: Float[Array, "*batch"]
     zeno_state: Float[Array, "*batch dim"]
     final_time: Float[Array, "*batch"]
@@ -126,6 +136,58 @@ class Solution(eqx.Module):
     # static (a solver's settings, a controller's Python-number tolerances and norm function).
     stepping_arrays: Any = None
     stepping_static: Any = eqx.field(static=True, default=None)
+
+    def _event(self, name: str):
+        record = (self.events_real, self.events_index, self.events_flag, self.mode0)
+        if np.shape(record[1])[-1:] != (2,) or np.shape(record[2])[-1:] != (3,):
+            raise ValueError(
+                f"Solution.{name}: the event record's last two axes are not (events, values) "
+                f"(events_index {np.shape(record[1])}, events_flag {np.shape(record[2])}): a batch "
+                "axis was moved behind them, e.g. by jax.vmap(..., out_axes=-1). Keep batch axes "
+                "leading (out_axes=0) and move the axes of the event array itself.")
+        if any(isinstance(a, jax.ShapeDtypeStruct) for a in record):  # a solution from `jax.eval_shape`
+            return jax.eval_shape(lambda *r: event_field(name, *r), *record)
+        return event_field(name, *record)
+
+    @property
+    def event_times(self) -> Float[Array, "*batch epochs"]:
+        """t_2, t_3, ... the times at which transitions fired (`inf` past `num_events`)."""
+        return self._event("event_times")
+
+    @property
+    def epoch_modes(self) -> Int[Array, "*batch epochs_plus_one"]:
+        """The mode index of each epoch (`-1` past the last)."""
+        return self._event("epoch_modes")
+
+    @property
+    def transitions(self) -> Int[Array, "*batch epochs"]:
+        """The index of each transition taken (K + c: a jump through `system.completions[c]`)."""
+        return self._event("transitions")
+
+    @property
+    def states_before(self) -> Float[Array, "*batch epochs dim"]:
+        """x(t_i^-) at each event."""
+        return self._event("states_before")
+
+    @property
+    def states_after(self) -> Float[Array, "*batch epochs dim"]:
+        """x(t_i^+) at each event."""
+        return self._event("states_after")
+
+    @property
+    def simultaneous(self) -> Bool[Array, "*batch epochs"]:
+        """True where another guard was reached at the same instant and lost on priority."""
+        return self._event("simultaneous")
+
+    @property
+    def grazing(self) -> Bool[Array, "*batch epochs"]:
+        """True where the flow met the guard nearly tangentially (see the class docstring)."""
+        return self._event("grazing")
+
+    @property
+    def inside_guard(self) -> Bool[Array, "*batch epochs"]:
+        """True where the transition fired at an epoch's start from strictly inside its guard."""
+        return self._event("inside_guard")
 
     @property
     def solver(self) -> diffrax.AbstractSolver | None:
@@ -285,14 +347,18 @@ class Solution(eqx.Module):
         sys_ = self.system
         n = int(self.num_events)
         labels = [tr.label for tr in sys_.transitions] + [c.label for c in sys_.completions]
+        # Each event array read once, as NumPy (each property reads it off the record anew).
+        times, tr, modes, sim, graz, inside = (np.asarray(a) for a in (
+            self.event_times, self.transitions, self.epoch_modes, self.simultaneous, self.grazing,
+            self.inside_guard))
         rows = "".join(
-            f"<tr><td>{i}</td><td>{float(self.event_times[i]):.10g}</td>"
-            f"<td>{esc(labels[int(self.transitions[i])])}</td>"
-            f"<td>{esc(sys_.mode_names[int(self.epoch_modes[i])])} &rarr; "
-            f"{esc(sys_.mode_names[int(self.epoch_modes[i + 1])])}</td>"
-            f"<td>{'simultaneous ' if bool(self.simultaneous[i]) else ''}"
-            f"{'grazing ' if bool(self.grazing[i]) else ''}"
-            f"{'inside guard' if bool(self.inside_guard[i]) else ''}</td></tr>"
+            f"<tr><td>{i}</td><td>{float(times[i]):.10g}</td>"
+            f"<td>{esc(labels[int(tr[i])])}</td>"
+            f"<td>{esc(sys_.mode_names[int(modes[i])])} &rarr; "
+            f"{esc(sys_.mode_names[int(modes[i + 1])])}</td>"
+            f"<td>{'simultaneous ' if bool(sim[i]) else ''}"
+            f"{'grazing ' if bool(graz[i]) else ''}"
+            f"{'inside guard' if bool(inside[i]) else ''}</td></tr>"
             for i in range(n)
         )
         return (f"<div><b>Solution</b>: {self.status_name}, {n} events, final time "

@@ -10,6 +10,7 @@ from .._core.status import Status
 from .._core.transforms import naming_the_forward_mode_fix
 from .._definition.system import HybridSystem, as_mode_index
 from .._definition.validation import as_state_array, check_time_span
+from .._engines.event_record import event_rows, with_scratch
 from .._engines.loop import Loop
 from .._rules.options import SolveOptions
 from .._solution.solution import Solution, stepping
@@ -177,16 +178,14 @@ def simulate(
     status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, st.status)
     if options.throw:
         final_time = status.error_if(final_time, status != Status.T1_REACHED)
+    events_real, events_index, events_flag = with_scratch(*event_rows(
+        rec.event_times, rec.states_before, rec.states_after, rec.transitions, rec.epoch_modes[1:],
+        rec.simultaneous, rec.grazing, rec.inside_guard, dtype))
     return Solution(
-        event_times=rec.event_times,
+        events_real=events_real,
+        events_index=events_index,
+        events_flag=events_flag,
         num_events=st.num_events,
-        epoch_modes=rec.epoch_modes,
-        transitions=rec.transitions,
-        states_before=rec.states_before,
-        states_after=rec.states_after,
-        simultaneous=rec.simultaneous,
-        grazing=rec.grazing,
-        inside_guard=rec.inside_guard,
         zeno_time=st.zeno_time,
         zeno_state=st.zeno_state,
         final_time=final_time,

@@ -203,7 +203,6 @@ def simulate_batch(
 
     available = _devices(engine.devices, N)
     block, lanes = engine.block, engine.lanes
-    max_epochs = options.max_epochs
     n = system.max_dim
     if x0_arr.shape[1] != n:  # `simulate`'s check and padding, row by row
         one_mode = int(mode0) if np.ndim(mode0) == 0 else None  # None: per-execution modes
@@ -249,7 +248,7 @@ def simulate_batch(
             save_ts=save_ts_, save_t0=save_t0, save_t1=save_t1, step_ts=step_ts_, jump_ts=jump_ts_)
         final, rec = loop.run(t0, y0.T, m0)
         # Executions first, every output: the devices' parts are joined along that axis.
-        return dict(**rec.fields(t0.shape[0], int(max_epochs)), num_events=final.num_events,
+        return dict(**rec.fields(), num_events=final.num_events,
                     zeno_time=final.zeno_time, zeno_state=final.zeno_state.T, final_time=final.t,
                     final_mode=final.mode, final_state=final.y.T, status=final.status,
                     num_steps=final.num_steps, num_rejected=final.num_rejected)
