@@ -148,10 +148,14 @@ def test_a_loop_stopped_at_max_steps_is_recomputed_to_the_same_step():
 
 
 def test_recomputed_length():
-    from hybridjax._engines.checkpointed import FINISH, recomputed_length
+    from hybridjax._engines.checkpointed import recomputed_length
+
     def running():
         return jnp.array(True)
-    assert bool(recomputed_length(2, 3, False, running)) and not bool(recomputed_length(3, 3, False, running))
-    assert bool(recomputed_length(3 + FINISH - 1, 3, True, running))
-    assert not bool(recomputed_length(3 + FINISH, 3, True, running))
-    assert not bool(recomputed_length(3, 3, True, lambda: jnp.array(False)))
+
+    # every forward iteration, whether the loop's condition holds or not
+    assert bool(recomputed_length(2, 3, 3, lambda: jnp.array(False)))
+    # past them only while the condition holds, and only up to `extended_to`
+    assert bool(recomputed_length(4, 3, 5, running)) and not bool(recomputed_length(5, 3, 5, running))
+    assert not bool(recomputed_length(3, 3, 5, lambda: jnp.array(False)))
+    assert not bool(recomputed_length(3, 3, 3, running))  # not the last segment

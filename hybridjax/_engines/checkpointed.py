@@ -52,10 +52,11 @@ def segment_length(max_steps: int, checkpoints: int | None) -> int:
 FINISH = 4
 
 
-def recomputed_length(t, length, last: jax.Array | bool, running: Callable) -> jax.Array:
+def recomputed_length(t, length, extended_to, running: Callable) -> jax.Array:
     """Whether the backward pass recomputes iteration t of a segment of `length` forward
-    iterations: every one of them, and in the last segment, while the loop's condition still
-    holds (`running()`), up to `FINISH` more.
+    iterations: every one of them, and while the loop's condition still holds (`running()`),
+    the iterations up to `extended_to` (> `length` only in the last segment: at most `FINISH`
+    more, never past `max_steps`).
 
     A recomputation is the body's program compiled again (under the linearisation, or inside a
     derivative of the derivative); where XLA rounds it otherwise, an adaptive solve recomputed
@@ -66,7 +67,7 @@ def recomputed_length(t, length, last: jax.Array | bool, running: Callable) -> j
     that ends sooner than the forward pass is unchanged by its remaining iterations (the body
     leaves a finished run as it is). A forward pass stopped by `max_steps` is recomputed to the
     same iteration."""
-    return (t < length) | (last & (t < length + FINISH) & running())
+    return (t < length) | ((t < extended_to) & running())
 
 
 def _split(leaves, mask):
@@ -127,7 +128,9 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
     True for the inexact leaves that may carry a derivative; the body's outputs at the other
     leaves must not depend differentiably on the inputs (their cotangents are dropped). Arrays
     that `body_fun` closes over (the system's parameters) are differentiated as inputs. `keep`:
-    what the backward pass's recomputation keeps of each iteration (module docstring)."""
+    what the backward pass's recomputation keeps of each iteration (module docstring).
+    `cond_fun` is called in the backward pass too (`recomputed_length`): it must close over no
+    traced value."""
     if keep not in ("residuals", "carries"):
         raise ValueError(f"checkpointed_while_loop: keep must be 'residuals' or 'carries', not {keep!r}.")
     numbers = bool | int | float | np.generic | np.ndarray
@@ -240,7 +243,8 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
             start = packing.unpack([lax.dynamic_index_in_dim(b, j, keepdims=False) for b in buf])
             # The last segment runs on to the loop's end (`recomputed_length`).
             length = jnp.minimum(k, n - j * k)
-            last = (j == first) & (n < max_steps)  # the forward pass ended by its condition
+            # never past max_steps: a forward pass stopped there is recomputed to the same iteration
+            extended_to = jnp.where(j == first, jnp.minimum(length + FINISH, max_steps - j * k), length)
 
             def recompute(r):
                 t, ls, kept = r
@@ -249,19 +253,19 @@ def checkpointed_while_loop(cond_fun: Callable, body_fun: Callable, init, *, max
                 return t + 1, ls, kept
 
             def more(r):
-                return recomputed_length(r[0], length, last, lambda: cond_fun(jtu.tree_unflatten(
+                return recomputed_length(r[0], length, extended_to, lambda: cond_fun(jtu.tree_unflatten(
                     tree, with_statics(r[1]))))
 
             kept = [jnp.zeros((k + FINISH,) + a.shape, a.dtype) for a in kept_avals]
-            length, _, kept = lax.while_loop(more, recompute, (jnp.array(0), start, kept))
+            recomputed, _, kept = lax.while_loop(more, recompute, (jnp.array(0), start, kept))
 
             def back(r):
                 t, ct_d, ct_k = r
-                item = [lax.dynamic_index_in_dim(b, length - 1 - t, keepdims=False) for b in kept]
+                item = [lax.dynamic_index_in_dim(b, recomputed - 1 - t, keepdims=False) for b in kept]
                 g_d, g_k = pull_back(item, ct_d)
                 return t + 1, g_d, [a + b for a, b in zip(g_k, ct_k, strict=True)]
 
-            _, ct_d, ct_k = lax.while_loop(lambda r: r[0] < length, back, (jnp.array(0), ct_d, ct_k))
+            _, ct_d, ct_k = lax.while_loop(lambda r: r[0] < recomputed, back, (jnp.array(0), ct_d, ct_k))
             return j - 1, ct_d, ct_k
 
         first = (n + k - 1) // k - 1
