@@ -5,7 +5,15 @@ scratch slot is left out."""
 import jax.numpy as jnp
 import numpy as np
 
-from hybridjax._engines.event_record import empty_events, event_rows, solution_arrays, with_scratch
+from hybridjax._engines.event_record import empty_events, event_field, event_rows, with_scratch
+
+NAMES = ("event_times", "states_before", "states_after", "transitions", "epoch_modes", "simultaneous", "grazing",
+         "inside_guard")
+
+
+def solution_arrays(real, index, flag, first_modes):
+    """Every event array of the `Solution`, as it reads them (`event_field`)."""
+    return {name: event_field(name, real, index, flag, first_modes) for name in NAMES}
 
 
 def test_events_written_by_rows_read_back_as_the_solution_arrays():

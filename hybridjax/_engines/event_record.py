@@ -12,10 +12,6 @@ of the bouncing ball), and inside `jax.jit` an event array that is not read is n
 import jax
 import jax.numpy as jnp
 
-# The `Solution`'s event arrays, read off the record by `event_field`.
-EVENT_FIELDS = ("event_times", "states_before", "states_after", "transitions", "epoch_modes",
-                "simultaneous", "grazing", "inside_guard")
-
 
 def empty_events(shape: tuple, n: int, dtype) -> tuple[jax.Array, jax.Array, jax.Array]:
     """`(real, index, flag)` of a record without events, `shape` the leading axes (executions,
@@ -44,7 +40,8 @@ def with_scratch(real, index, flag) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 
 def event_field(name: str, real, index, flag, first_modes) -> jax.Array:
-    """The `Solution`'s event array `name` (one of `EVENT_FIELDS`) from the record (E + 1 slots
+    """The `Solution`'s event array `name` (`event_times`, `states_before`, `states_after`,
+    `transitions`, `epoch_modes`, `simultaneous`, `grazing` or `inside_guard`) from the record (E + 1 slots
     on the second-to-last axis of each, the last the scratch slot; `first_modes` the initial
     modes, the record's leading axes): `epoch_modes` is the initial mode followed by the mode
     each event starts."""
@@ -58,7 +55,3 @@ def event_field(name: str, real, index, flag, first_modes) -> jax.Array:
                      "simultaneous": (flag, 0), "grazing": (flag, 1), "inside_guard": (flag, 2)}[name]
     return array[..., events, column]
 
-
-def solution_arrays(real, index, flag, first_modes) -> dict:
-    """Every event array of the `Solution` from the record (`event_field`)."""
-    return {name: event_field(name, real, index, flag, first_modes) for name in EVENT_FIELDS}
