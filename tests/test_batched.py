@@ -21,7 +21,7 @@ import hybridjax as hj
 from hybridjax import examples
 from hybridjax._definition.kernels import Kernels
 from hybridjax._engines.batched import PER_COMPONENT_MAX_DIM
-from hybridjax._engines.dense_weights import ChebyshevDense, chebyshev_weights
+from hybridjax._engines.dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
 from hybridjax._engines.xla_cpu import first_lanes, running_count
 from hybridjax._solve.simulate_batch import carries_derivatives
 
@@ -358,6 +358,26 @@ def test_chebyshev_form_of_the_dense_output_equals_diffrax_interpolation(solver)
         want = ref.evaluate(t) + (t - t0) / (t1 - t0) * miss
         np.testing.assert_allclose(ours.evaluate(t), want, rtol=1e-12, atol=1e-13)
     assert np.array_equal(ours.evaluate(t0), y0)  # exact at the step's start
+
+
+@pytest.mark.parametrize("solver", [diffrax.Bosh3(), diffrax.Tsit5(), diffrax.Dopri8()],
+                         ids=lambda s: type(s).__name__)
+def test_dense_weights_give_diffrax_interpolation_and_its_slope(solver):
+    # y(theta) = a y0 + b y1 + sum_i c_i k_i at fixed fractions, against diffrax's interpolation
+    # on [t0, t1] itself, and the slope against its central differences (per unit theta).
+    rng = np.random.default_rng(5)
+    s = len(type(solver).tableau.c) + 1
+    y0, y1, k = rng.normal(size=2), rng.normal(size=2), rng.normal(size=(s, 2))
+    t0, t1 = 0.3, 0.8
+    ref = solver.interpolation_cls(t0=t0, t1=t1, y0=jnp.asarray(y0), y1=jnp.asarray(y1), k=jnp.asarray(k))
+    thetas = np.array([0.0, 0.2, 0.5, 0.9, 1.0])
+    value, slope = dense_weights(solver.interpolation_cls, s, thetas, jnp.float64)
+    h, d = t1 - t0, 1e-6
+    for th, (a, b, c), (da, db, dc) in zip(thetas, value, slope, strict=True):
+        t = t0 + th * h
+        np.testing.assert_allclose(a * y0 + b * y1 + np.asarray(c) @ k, ref.evaluate(t), rtol=1e-13, atol=1e-13)
+        fd = (np.asarray(ref.evaluate(t + d)) - np.asarray(ref.evaluate(t - d))) / (2 * d) * h
+        np.testing.assert_allclose(da * y0 + db * y1 + np.asarray(dc) @ k, fd, rtol=1e-7, atol=1e-7)
 
 
 class _StartsOff(eqx.Module):

@@ -29,7 +29,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
-from scipy.stats import qmc
 
 from .._core.checks import check_int
 from .._core.names import one_of
@@ -155,6 +154,9 @@ def sample(
     seed = numpy_seed("sample", key, shorthands.get("seed"))
     b = _bounds(bounds)
     d = b.shape[0]
+    # scipy.stats takes about a second to import: imported here, `import hybridjax` does not pay it.
+    from scipy.stats import qmc
+
     if sampler == "sobol":
         u = qmc.Sobol(d, scramble=True, seed=seed).random_base2(max(0, math.ceil(math.log2(n))))
     elif sampler == "lhs":
