@@ -16,8 +16,8 @@ process (this script re-runs itself with `--one SYSTEM CALL [--cache DIR]`), whi
 (wall time, and the process's CPU time beside it: the machine may be shared);
 the same call on the plain diffrax loop (a `lax.scan` over 64 epochs of `diffeqsolve` +
 `diffrax.Event`, `_baselines.diffrax_epoch_scan`), also in a fresh process, whose import is
-`import jax` and `import diffrax` (the hybridjax its process imports for the problem's
-definition is left out of its times);
+`import jax` and `import diffrax` (the hybridjax and the baselines' module its process imports
+for the problem's definition are left out of its times);
 and records the size of the program (the lowered StableHLO text: bytes, lines, operations; the
 optimised HLO that XLA compiled: instructions). Then the same with JAX's persistent compilation
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
@@ -157,12 +157,17 @@ def one(system: str, call: str, cache: str | None, lock: bool = False, fast: boo
     import diffrax
     import jax.numpy as jnp
 
+    # `import_hybridjax_s`: the second import, hybridjax's (with diffrax), or diffrax's alone in
+    # a lock-step process: its user imports jax and diffrax, and the process imports hybridjax
+    # (for the problem's definition and closed form) and the baselines' module outside the times
+    # it reports.
     import_hj_s = time.perf_counter() - t
-    # The lock-step loop's user imports diffrax alone: its process imports hybridjax (for the
-    # problem's definition and closed form) outside the times it reports.
+    assert not (lock and eager), "the direct call is hybridjax's"
     t, c = time.perf_counter(), time.process_time()
     import hybridjax as hj
 
+    if lock:
+        from _baselines import diffrax_epoch_scan
     untimed_s, untimed_cpu_s = (time.perf_counter() - t, time.process_time() - c) if lock else (0.0, 0.0)
     import_hj_s += 0.0 if lock else time.perf_counter() - t
 
@@ -172,8 +177,6 @@ def one(system: str, call: str, cache: str | None, lock: bool = False, fast: boo
     v = jnp.ones_like(x0)
 
     if lock:
-        from _baselines import diffrax_epoch_scan
-
         def final(x, a, adjoint=None):
             run = diffrax_epoch_scan(sysm, solver=diffrax.Tsit5(), controller=diffrax.PIDController(rtol=1e-8, atol=1e-8),
                                      t1=t1, adjoint=adjoint)

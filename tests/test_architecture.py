@@ -198,11 +198,12 @@ def test_both_engines_call_the_same_rule_functions():
 
 def test_import_leaves_the_optional_heavy_modules_to_the_functions_that_use_them():
     # scipy.stats (the samplers of `hj.sample`, about a second to import) and matplotlib
-    # (`hybridjax.plot`) are imported where they are used: `import hybridjax` does not load them.
+    # (`hybridjax.plot`) are imported by what uses them: `import hybridjax` does not load them.
     import subprocess
     import sys
 
     code = ("import sys, hybridjax; print(sorted(m for m in sys.modules "
             "if m.split('.')[0] in ('scipy', 'matplotlib')))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         timeout=120)
     assert out.stdout.strip() == "[]", out.stdout

@@ -360,24 +360,27 @@ def test_chebyshev_form_of_the_dense_output_equals_diffrax_interpolation(solver)
     assert np.array_equal(ours.evaluate(t0), y0)  # exact at the step's start
 
 
-@pytest.mark.parametrize("solver", [diffrax.Bosh3(), diffrax.Tsit5(), diffrax.Dopri8()],
-                         ids=lambda s: type(s).__name__)
-def test_dense_weights_give_diffrax_interpolation_and_its_slope(solver):
+@pytest.mark.parametrize("solver, dtype", [(diffrax.Bosh3(), "float64"), (diffrax.Tsit5(), "float64"),
+                                           (diffrax.Dopri8(), "float64"), (diffrax.Tsit5(), "float32")],
+                         ids=lambda p: p if isinstance(p, str) else type(p).__name__)
+def test_dense_weights_give_diffrax_interpolation_and_its_slope(solver, dtype):
     # y(theta) = a y0 + b y1 + sum_i c_i k_i at fixed fractions, against diffrax's interpolation
-    # on [t0, t1] itself, and the slope against its central differences (per unit theta).
+    # on [t0, t1] itself (float64), and the slope against its central differences (per unit theta).
     rng = np.random.default_rng(5)
     s = len(type(solver).tableau.c) + 1
     y0, y1, k = rng.normal(size=2), rng.normal(size=2), rng.normal(size=(s, 2))
     t0, t1 = 0.3, 0.8
     ref = solver.interpolation_cls(t0=t0, t1=t1, y0=jnp.asarray(y0), y1=jnp.asarray(y1), k=jnp.asarray(k))
     thetas = np.array([0.0, 0.2, 0.5, 0.9, 1.0])
-    value, slope = dense_weights(solver.interpolation_cls, s, thetas, jnp.float64)
+    value, slope = dense_weights(solver.interpolation_cls, s, thetas, jnp.dtype(dtype))
+    tol = 1e-13 if dtype == "float64" else 1e-5
     h, d = t1 - t0, 1e-6
     for th, (a, b, c), (da, db, dc) in zip(thetas, value, slope, strict=True):
         t = t0 + th * h
-        np.testing.assert_allclose(a * y0 + b * y1 + np.asarray(c) @ k, ref.evaluate(t), rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(a * y0 + b * y1 + np.asarray(c) @ k, ref.evaluate(t), rtol=tol, atol=tol)
         fd = (np.asarray(ref.evaluate(t + d)) - np.asarray(ref.evaluate(t - d))) / (2 * d) * h
-        np.testing.assert_allclose(da * y0 + db * y1 + np.asarray(dc) @ k, fd, rtol=1e-7, atol=1e-7)
+        np.testing.assert_allclose(da * y0 + db * y1 + np.asarray(dc) @ k, fd, rtol=max(tol, 1e-7),
+                                   atol=max(tol, 1e-7))
 
 
 class _StartsOff(eqx.Module):
