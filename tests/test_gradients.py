@@ -111,6 +111,31 @@ def test_derivatives_of_a_save_at_t1():
     np.testing.assert_allclose(jax.jacrev(saved("simulate_batch"))(jnp.asarray(1.0)), exact, rtol=1e-9, atol=1e-12)
 
 
+def test_derivatives_when_the_run_reaches_t1_at_an_epochs_start():
+    # t1 = t0: the final state and the save at t1 are x0, and their derivatives those of the
+    # flow continued past t0: d/dt1 = F(x0) = (v0, -g), d/dt0 = -F(x0). A ball on the floor
+    # moving down bounces at t0 (a zero-length epoch) and ends at its reset state (0, e |v0|):
+    # d/dt1 = (e |v0|, -g). Both engines.
+    def run(engine):
+        def out(x0, t0, t1):
+            kw = dict(saveat=diffrax.SaveAt(t1=True), stepsize_controller=TIGHT)
+            if engine == "simulate":
+                sol = hj.simulate(BALL, x0, "flight", t0, t1, BALL_ARGS, **kw)
+                return jnp.stack([sol.final_state, sol.ys[-1]])
+            sol = hj.simulate_batch(BALL, x0[None], "flight", t0, t1, BALL_ARGS, engine="batched", **kw)
+            return jnp.stack([sol.final_state[0], sol.ys[0, -1]])
+        return jax.jit(jax.jacrev(out, argnums=(1, 2)))
+
+    zero = jnp.asarray(0.0)
+    F = np.array([0.5, -9.8])
+    for engine in ("simulate", "batched"):
+        d0, d1 = run(engine)(jnp.array([1.0, 0.5]), zero, zero)
+        np.testing.assert_allclose(d1, np.stack([F, F]), rtol=1e-12)
+        np.testing.assert_allclose(d0, -np.stack([F, F]), rtol=1e-12)
+    _, d1 = run("simulate")(jnp.array([0.0, -1.0]), zero, zero)
+    np.testing.assert_allclose(d1[0], [0.8, -9.8], rtol=1e-12)
+
+
 def test_zero_length_epoch_chain_sensitivity_ceiling():
     # d v(T) / d v0 = g dt*/dv0 = -g t*/v* = 1 - sqrt(5) for z0 = 0, v0 = 7, H = 2, g = 9.8, T = 1.
     p = {"g": 9.8, "H": 2.0}

@@ -57,6 +57,27 @@ def test_step_end_moves_t_by_at_least_one_ulp_and_stops_at_t1():
     assert float(R.step_end(jnp.asarray(9.8), 1.0, 10.0)) == 10.0
 
 
+def test_a_run_that_reaches_t1_at_an_epochs_start_continues_by_its_flow():
+    # x + ((t1 - t_s) - its value) F: the value is x, the tangent F (dt1 - dt_s) where the run
+    # ended at its last epoch's start, x's own elsewhere; a non-finite field adds nothing.
+    x, F = jnp.array([1.0, 2.0]), jnp.array([0.5, -9.8])
+
+    def cont(field, at_start):
+        return jax.jvp(lambda x, ts, t1: R.continued_past_start(x, field, ts, t1, at_start),
+                       (x, jnp.asarray(0.25), jnp.asarray(0.25)),
+                       (jnp.array([1.0, 0.0]), jnp.asarray(1.0), jnp.asarray(3.0)))
+
+    value, tangent = cont(F, jnp.array(True))
+    np.testing.assert_array_equal(value, x)
+    np.testing.assert_allclose(tangent, [1.0 + 0.5 * 2.0, -9.8 * 2.0])
+    value, tangent = cont(F, jnp.array(False))
+    np.testing.assert_array_equal(value, x)
+    np.testing.assert_array_equal(tangent, [1.0, 0.0])
+    value, tangent = cont(jnp.array([jnp.inf, jnp.nan]), jnp.array(True))
+    np.testing.assert_array_equal(value, x)
+    np.testing.assert_array_equal(tangent, [1.0, 0.0])
+
+
 def test_a_step_that_lands_on_t1_takes_t1s_derivative():
     # t + h = t1 to the last bit: the step ends at t1 with t1's tangent (jnp.minimum would give
     # half of each argument's). Tangents: t 1, h 0, t1 3 -> 3; elsewhere the smaller one's.

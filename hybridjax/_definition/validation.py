@@ -59,7 +59,8 @@ def check_time_span(t0, t1, where: str, given: tuple):
     try:
         bad = bool(np.any(np.asarray(given[1]) < np.asarray(given[0])))
     except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return jnp.maximum(t1, t0), t1 < t0
+        # t1 where t1 = t0, with its whole derivative (`jnp.maximum` would halve it at the tie).
+        return jnp.where(t1 < t0, t0, t1), t1 < t0
     if bad:
         raise ValueError(f"{where}: t1 must be >= t0.")
     return t1, np.zeros(np.shape(t1), bool)

@@ -9,7 +9,8 @@ gathering and scattering of lanes, the while loop); what an execution *does* is 
 The rules, in the order an iteration meets them (docs: Architecture has the table of rules,
 functions and tests):
 
-- tolerances: `event_time_tol`, `step_end` (the t_next clamp, `at_most_end`), `clip_to_times` (step_ts,
+- tolerances: `event_time_tol`, `step_end` (the t_next clamp, `at_most_end`), `continued_past_start`
+  (t1 reached at an epoch's start), `clip_to_times` (step_ts,
   jump_ts);
 - the start of an epoch: `epoch_start` (`start_decision`: the trending-negative band and Lie
   derivatives; `first_step`, `departure_step_bound`);
@@ -89,6 +90,7 @@ from .step import step_collapsed as step_collapsed
 from .step import step_stops as step_stops
 from .tolerances import at_most_end as at_most_end
 from .tolerances import clip_to_times as clip_to_times
+from .tolerances import continued_past_start as continued_past_start
 from .tolerances import event_time_tol as event_time_tol
 from .tolerances import step_end as step_end
 from .zeno import detect_zeno as detect_zeno

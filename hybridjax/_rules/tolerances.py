@@ -34,6 +34,20 @@ def at_most_end(t_next, t1):
     return jnp.where((t_next >= t1) | jnp.isnan(t1), t1, t_next)
 
 
+def continued_past_start(x, field, t_start, t1, at_start):
+    """The state at t1 of a run that reaches t1 at the start of its last epoch, with no step
+    after it (`at_start`: t1 = t0, or an event at t1 exactly):
+
+    x(t1) = x + ((t1 - t_s) - (t1 - t_s)|_value) F(t1, x),
+
+    whose value is x and whose derivative is the epoch's flow continued past its start,
+    F (dt1 - dt_s): the one-sided derivative of the run continued a little past t1, the same as
+    where a step reaches t1 (`at_most_end`). Elsewhere x. A non-finite field adds nothing.
+    """
+    delta = (t1 - sg(t1)) - (t_start - sg(t_start))  # zero, with the derivative of t1 - t_s
+    return jnp.where(at_start, x + delta * jnp.where(jnp.isfinite(field), field, 0.0), x)
+
+
 def step_end(t, h, t1):
     """The end of the next step: t_next = min(max(t + h, nextafter(t)), t1) (`at_most_end`).
 

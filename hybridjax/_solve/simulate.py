@@ -16,6 +16,7 @@ from .._rules.options import SolveOptions
 from .._solution.solution import Solution, stepping
 from .._step.runge_kutta import split_clip
 from .eager import compiled_when_eager
+from .end_time import at_t1_from_epoch_start
 from .engines import AbstractEngine, as_engine, step_engine
 from .prepare import initial_state, prepare, promote_args, save_times, solve_options
 
@@ -178,6 +179,8 @@ def simulate(
     status = Status.where(t1_before_t0, Status.T1_BEFORE_T0, st.status)
     if options.throw:
         final_time = status.error_if(final_time, status != Status.T1_REACHED)
+    final_state, ys = at_t1_from_epoch_start(loop.kern, st.y, st.mode, status, st.num_events, rec.event_times,
+                                             rec.ys, loop.save_ts, t0, t1, args)
     events_real, events_index, events_flag = with_scratch(*event_rows(
         rec.event_times, rec.states_before, rec.states_after, rec.transitions, rec.epoch_modes[1:],
         rec.simultaneous, rec.grazing, rec.inside_guard, dtype))
@@ -190,10 +193,10 @@ def simulate(
         zeno_state=st.zeno_state,
         final_time=final_time,
         final_mode=st.mode,
-        final_state=st.y,
+        final_state=final_state,
         status=status,
         ts=loop.save_ts,
-        ys=rec.ys,
+        ys=ys,
         saved_modes=rec.saved_modes,
         num_steps=st.num_steps,
         num_rejected=st.num_rejected,

@@ -1,5 +1,6 @@
 """`simulate_batch`: N executions at once, on the batched structure-of-arrays engine."""
 
+import functools
 from typing import Any
 
 import diffrax
@@ -12,6 +13,7 @@ from jaxtyping import ArrayLike, Float, Int
 
 from .._core.status import Status
 from .._core.transforms import compiled_call_modes, naming_the_forward_mode_fix
+from .._definition.kernels import Kernels
 from .._definition.system import AbstractHybridSystem, HybridSystem
 from .._definition.validation import as_state_array, check_time_span
 from .._engines.batched import BatchedLoop
@@ -20,6 +22,7 @@ from .._rules.options import SolveOptions
 from .._solution.solution import Solution, stepping
 from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, split_clip
 from .eager import compiled_when_eager
+from .end_time import at_t1_from_epoch_start
 from .engines import AbstractEngine, AbstractStepEngine, AutoEngine, BatchedEngine, VmapEngine, as_engine
 from .prepare import initial_state, prepare, promote_args, save_times, solve_options
 from .simulate import simulate
@@ -272,11 +275,16 @@ def simulate_batch(
         ts = ts.at[:, 0].set(t0)
     if save_t1:
         ts = ts.at[:, -1].set(t1)
-    return Solution(
+    sol = Solution(
         **out, status=status, ts=ts,
         t0=t0, x0=y0, mode0=m0, args=batched_args, system=system,
         **stepping(*jtu.tree_map(per_execution, (run.solver, run.controller))),
     )
+    kern = Kernels(system, jtu.tree_map(lambda a: a[0], batched_args), dtype)
+    final_state, ys = jax.vmap(functools.partial(at_t1_from_epoch_start, kern))(
+        sol.final_state, sol.final_mode, status, sol.num_events, sol.event_times, sol.ys, ts, t0, t1,
+        batched_args)
+    return eqx.tree_at(lambda s: (s.final_state, s.ys), sol, (final_state, ys))
 
 
 def _devices(devices, N: int) -> list:
