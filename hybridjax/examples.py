@@ -16,13 +16,18 @@
 The `*_closed_form` functions are plain numpy derivations, independent of the simulator.
 """
 
+from __future__ import annotations
+
 import math
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
 
 from ._definition.system import HybridSystem, Mode, Transition
-from ._scenes.scene import Constraint, Relabel, Scene
+
+if TYPE_CHECKING:  # imported by the scene examples when called: `import hybridjax` needs it not
+    from ._scenes.scene import Relabel, Scene
 
 # ----------------------------------------------------------------------------- ball
 
@@ -472,6 +477,7 @@ def wedge_particle() -> Scene:
     impacts. `args = {"m", "g", "theta"}`; theta in (0, pi) sets which transitions are
     achievable (see the scenes guide).
     """
+    from ._scenes.scene import Constraint, Scene
 
     def a_H(t, q, p):
         return -q[0] * jnp.sin(p["theta"]) + q[1] * jnp.cos(p["theta"])
@@ -489,6 +495,8 @@ def wedge_particle() -> Scene:
 def ball_scene() -> Scene:
     r"""The bouncing ball as a scene: q = (h,), unit mass, gravity -g, a floor h >= 0 with
     restitution `args["e"]`. Its system equals `bouncing_ball` (one mode, "free")."""
+    from ._scenes.scene import Constraint, Scene
+
     return Scene(
         dim=1,
         mass=lambda q, p: jnp.eye(1),
@@ -503,6 +511,8 @@ def ceiling_scene() -> Scene:
     r"""The ball thrown at a ceiling as a scene: q = (z,), unit mass, gravity -g, a ceiling
     H - z >= 0 with plastic impact. Its system equals `ceiling_ball`: the contact force -g < 0
     right after the impact lifts it off in a zero-length epoch."""
+    from ._scenes.scene import Constraint, Scene
+
     return Scene(
         dim=1,
         mass=lambda q, p: jnp.eye(1),
@@ -522,6 +532,8 @@ def polygon_particle(num_walls: int) -> Scene:
     sets only the free one, single walls and corners of adjacent walls can be reached.
     `args = {"g", "r"}`.
     """
+    from ._scenes.scene import Constraint, Scene
+
     K = int(num_walls)
     if K < 1:
         raise ValueError(f"polygon_particle: num_walls must be >= 1, got {num_walls}.")
@@ -555,6 +567,8 @@ def rimless_wheel_scene(inertia: float = 0.1) -> tuple[Scene, Relabel]:
     the new foot moved to x = 0, so that the rolling gait is a periodic orbit. Returns
     `(scene, relabel)`; build with `contact_system(scene, ["spoke0"], args, relabels=[relabel])`.
     """
+    from ._scenes.scene import Constraint, Relabel, Scene
+
     if not inertia > 0:
         raise ValueError(f"rimless_wheel_scene: `inertia` must be > 0, got {inertia}.")
 
@@ -635,6 +649,7 @@ def compass_gait_scene() -> tuple[Scene, Relabel]:
     Returns `(scene, relabel)`; build with
     `contact_system(scene, ["foot0"], args, relabels=[relabel])`.
     """
+    from ._scenes.scene import Constraint, Relabel, Scene
 
     def hip(q):
         return q[0:2]
@@ -712,6 +727,7 @@ def rod_scene(friction: tuple[str, ...] = ()) -> Scene:
     (and `"mu"`). With friction each end's tangent is its x coordinate, `x -/+ (L/2) cos phi`,
     and each end sticks or slips (modes such as `"left:stick+right:slip+"`).
     """
+    from ._scenes.scene import Constraint, Scene
 
     def end(sign):
         return lambda t, q, p: q[1] + sign * 0.5 * p["L"] * jnp.sin(q[2])

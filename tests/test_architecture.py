@@ -198,12 +198,37 @@ def test_both_engines_call_the_same_rule_functions():
 
 def test_import_leaves_the_optional_heavy_modules_to_the_functions_that_use_them():
     # scipy.stats (the samplers of `hj.sample`, about a second to import) and matplotlib
-    # (`hybridjax.plot`) are imported by what uses them: `import hybridjax` does not load them.
+    # (`hybridjax.plot`) are imported by what uses them, and analysis, estimation, optimisation
+    # (with optax) and scenes by the first use of one of their names: `import hybridjax` loads
+    # none of them, and then `hj.Scene` loads the scenes.
     import subprocess
     import sys
 
-    code = ("import sys, hybridjax; print(sorted(m for m in sys.modules "
-            "if m.split('.')[0] in ('scipy', 'matplotlib')))")
+    lazy = ("hybridjax._analysis", "hybridjax._estimation", "hybridjax._optimise", "hybridjax._scenes")
+    code = ("import sys, hybridjax as hj\n"
+            "def loaded(): return sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'matplotlib', "
+            f"'optax') or m.startswith({lazy!r}))\n"
+            "print(loaded()); hj.Scene; print('hybridjax._scenes.scene' in loaded())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          timeout=120)
-    assert out.stdout.strip() == "[]", out.stdout
+    assert out.stdout.split() == ["[]", "True"], out.stdout
+
+
+def test_every_lazily_imported_name_is_its_modules_object_and_named_for_static_analysis():
+    # `hybridjax.__getattr__` imports a name of `_LAZY` on first use; the `TYPE_CHECKING` block
+    # names the same objects for type checkers and the docs (mkdocstrings reads the source).
+    import ast
+    import importlib
+
+    import hybridjax as hj
+
+    tree = ast.parse(pathlib.Path(hj.__file__).read_text())
+    static = {(node.module, a.name) for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+              and any(isinstance(p, ast.If) and node in ast.walk(p) for p in tree.body) for a in node.names}
+    lazy = {(module[1:], name) for module, names in hj._LAZY.items() for name in names}
+    assert static == lazy
+    for module, name in lazy:
+        assert getattr(hj, name) is getattr(importlib.import_module(f"hybridjax.{module}"), name)
+        assert name in dir(hj) and name in hj.__all__
+    with pytest.raises(AttributeError, match="no attribute 'no_such_name'"):
+        hj.no_such_name  # noqa: B018

@@ -493,6 +493,8 @@ def test_engine_choice_and_errors():
         hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, BALL_ARGS, engine="turbo")
     with pytest.raises(ValueError, match=r"\(N, dim\)"):
         hj.simulate_batch(BALL, x0[0], "flight", 0.0, 1.0, BALL_ARGS)
+    with pytest.raises(ValueError, match="no rows"):
+        hj.simulate_batch(BALL, x0[:0], "flight", 0.0, 1.0, BALL_ARGS)
     with pytest.raises(ValueError, match="leading axis of 2"):
         hj.simulate_batch(BALL, x0, "flight", 0.0, 1.0, {"g": jnp.ones(3), "e": jnp.ones(3)}, args_batched=True)
     with pytest.raises(ValueError, match="has dim 2"):

@@ -8,6 +8,7 @@ import pytest
 from scipy.stats import qmc
 
 import hybridjax as hj
+from hybridjax._analysis.sensitivity import saltelli_estimates
 
 E, T = 0.8, 1.5
 BOUNDS = np.array([[0.5, 1.5], [5.0, 15.0]])  # h0, g
@@ -74,7 +75,7 @@ def test_saltelli_estimators_on_an_additive_function_in_numpy():
     A, B = rng.random((200_000, 2)), rng.random((200_000, 2))
     f = lambda x: (x[:, 0] + 2 * x[:, 1])[:, None]  # noqa: E731
     AB = np.stack([np.where(np.arange(2) == i, B, A) for i in range(2)])
-    S, ST = hj._analysis.sensitivity.saltelli_estimates(f(A), f(B), np.stack([f(x) for x in AB]))
+    S, ST = saltelli_estimates(f(A), f(B), np.stack([f(x) for x in AB]))
     np.testing.assert_allclose(S[0], [0.2, 0.8], atol=5e-3)
     np.testing.assert_allclose(ST[0], [0.2, 0.8], atol=5e-3)
 

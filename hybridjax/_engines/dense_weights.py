@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._core.xla_options import FAST_COMPILE_CPU
 from .._step.runge_kutta import (
     weighted_sum,
 )
@@ -28,7 +29,6 @@ def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
 
 
 _THETA_PAD = 16
-_CHEAP_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 
 
 @functools.lru_cache(maxsize=64)
@@ -78,7 +78,7 @@ def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype
 
     # A few kernels run once: compiled by XLA:CPU's own emitters, which compile it sooner.
     return jax.jit(both).lower(jax.ShapeDtypeStruct((num_thetas,), dtype)).compile(
-        compiler_options=_CHEAP_COMPILE if jax.default_backend() == "cpu" else None)
+        compiler_options=FAST_COMPILE_CPU if jax.default_backend() == "cpu" else None)
 
 
 CHEB_DEGREE = 9  # >= the degree in theta of every unrolled solver's dense output

@@ -67,6 +67,8 @@ from .._core.transforms import (
     naming_the_forward_mode_fix,
     reverse_only_at_call,
 )
+from .._core.xla_options import FAST_COMPILE_CPU as FAST_COMPILE_CPU
+from .._core.xla_options import WIDE_VECTORS_CPU as WIDE_VECTORS_CPU
 from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
 from .prepare import SHORTHANDS, solve_options
 
@@ -145,16 +147,6 @@ def _options_as_object(bound: inspect.BoundArguments, where: str) -> None:
     bound.arguments["shorthands"] = {name: value for name, value in given.items() if name not in mine}
 
 
-# XLA options that compile a program's kernels with XLA:CPU's own fusion emitters rather than
-# its MLIR ones (`eager_compiler_options`); an option of the one program, not of the process.
-FAST_COMPILE_CPU = {"xla_cpu_use_fusion_emitters": False}
-
-# XLA options under which LLVM's loop vectorizer may use 512-bit vectors (XLA:CPU's default is
-# 256; on a CPU without AVX-512 each is two 256-bit instructions, so the loop over the lanes
-# is unrolled twice). A batch's kernels are loops over thousands of executions: with it the
-# batched engine, `jax.vmap(simulate)` and their forward-mode derivatives run faster, a batch's
-# reverse-mode derivative slower (FAQ: Compile time, "Batches: wider vectors").
-WIDE_VECTORS_CPU = {"xla_cpu_prefer_vector_width": 512}
 
 
 def _options_key(options: dict) -> tuple:

@@ -173,6 +173,8 @@ def simulate_batch(
     if x0_arr.ndim != 2:
         raise ValueError(f"x0 must be (N, dim) (one row per execution), got shape {x0_arr.shape}.")
     N = x0_arr.shape[0]
+    if N == 0:
+        raise ValueError(f"x0 has no rows (shape {x0_arr.shape}): simulate_batch runs one execution or more.")
     if args_batched:
         bad = [np.shape(a) for a in jtu.tree_leaves(args) if not np.shape(a) or _lanes(a) != N]
         if bad:
