@@ -12,6 +12,7 @@ A result file that is missing is skipped (its page keeps its last generated vers
 """
 
 import json
+import statistics
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -543,6 +544,21 @@ def _plot_derivative_accuracy(res: dict) -> str:
     return _save(fig, "derivative_accuracy.png")
 
 
+_SYSTEM_NAMES = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle",
+                 "lif": "integrate-and-fire"}
+
+
+def names_of(system: str) -> str:
+    """A first-call system's name in the tables."""
+    return _SYSTEM_NAMES.get(system, system)
+
+
+def _runs(row: dict) -> str:
+    """"; runs: a, b, ... s" for a row that is the best of several processes, else nothing."""
+    runs = row.get("first_result_runs_s")
+    return f"; runs: {', '.join(f'{t:.2f}' for t in runs)} s" if runs and len(runs) > 1 else ""
+
+
 def first_call(res: dict) -> list[str]:
     out = _page("first_call", "First call", res, "first_call.py",
                 "What the first call costs a new user: each system and call in a fresh Python process, from "
@@ -570,25 +586,49 @@ def first_call(res: dict) -> list[str]:
                 "`jax.grad` or `jax.jvp` for the derivatives), which hybridjax compiles itself, for one "
                 "execution with the options above (under `jax.grad`, its forward and backward passes "
                 "as two programs): its first call (tracing, lowering, "
-                "compiling and running) is timed as a whole. See the [FAQ](../faq.md#compile-time).")
-    names = {"ball": "bouncing ball", "thermostat": "thermostat", "wall": "wall particle", "lif": "integrate-and-fire"}
+                "compiling and running) is timed as a whole. The direct call and the lock-step loop run in "
+                f"{res.get('pairs', 1)} alternating pairs of fresh processes; their rows show the best run of each "
+                "(*runs*: every run's first result, in order). hybridjax's modules are byte-compiled beforehand, "
+                "as `pip install` leaves them. See the [FAQ](../faq.md#compile-time).")
+    summary = []
+    for system in res["systems"]:
+        for call in res["calls"]:
+            rows = res["rows"].get(system, {}).get(call, {})
+            direct, lock = rows.get("direct call", {}), rows.get("lock-step loop", {})
+            if "first_result_s" not in direct or "first_result_s" not in lock:
+                continue
+            d_runs = direct.get("first_result_runs_s", [direct["first_result_s"]])
+            l_runs = lock.get("first_result_runs_s", [lock["first_result_s"]])
+            summary.append([names_of(system), call, f"**{direct['first_result_s']:.2f} s**",
+                            f"**{lock['first_result_s']:.2f} s**",
+                            f"**{direct['first_result_s'] / lock['first_result_s']:.2f}x**",
+                            f"{statistics.median(d_runs):.2f} s", f"{statistics.median(l_runs):.2f} s",
+                            f"{statistics.median(d_runs) / statistics.median(l_runs):.2f}x"])
+    if summary:
+        out += ["## Direct call against the lock-step loop", "",
+                f"The first result, from the process's first line, best and median of {res.get('pairs', 1)} "
+                "alternating pairs of fresh processes.", "",
+                *_table(["system", "call", "direct call, best", "lock-step loop, best", "ratio (best)",
+                         "direct call, median", "lock-step loop, median", "ratio (median)"], summary)]
     for call in res["calls"]:
         body = []
         for system in res["systems"]:
             for proc, r in res["rows"].get(system, {}).get(call, {}).items():
                 if "failed" in r:
-                    body.append([names.get(system, system), proc, "failed: " + r["failed"], *[""] * 8])
+                    body.append([names_of(system), proc, "failed: " + r["failed"], *[""] * 8])
                     continue
                 if "trace_s" not in r:  # a direct call, timed as a whole
-                    body.append([names.get(system, system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
+                    body.append([names_of(system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
                                  f"first call: {r['first_call_s']:.1f} s", "", "", "",
-                                 f"**{r['first_result_s']:.1f} s** ({r['first_result_cpu_s']:.1f} s CPU)", "", "",
+                                 f"**{r['first_result_s']:.1f} s** ({r['first_result_cpu_s']:.1f} s CPU)" + _runs(r),
+                                 "", "",
                                  f"{r['error']:.0e}"])
                     continue
-                body.append([names.get(system, system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
+                body.append([names_of(system), proc, f"{r['import_jax_s'] + r['import_hybridjax_s']:.1f} s",
                              f"{r['trace_s']:.1f} s", f"{r['lower_s']:.1f} s", f"{r['compile_s']:.1f} s",
                              f"{r['first_run_s'] * 1e3:.0f} ms", f"**{r['first_result_s']:.1f} s**"
-                             + (f" ({r['first_result_cpu_s']:.1f} s CPU)" if "first_result_cpu_s" in r else ""),
+                             + (f" ({r['first_result_cpu_s']:.1f} s CPU)" if "first_result_cpu_s" in r else "")
+                             + _runs(r),
                              f"{r['stablehlo_bytes'] / 2**10:,.0f} KiB, {r['stablehlo_ops']:,} ops",
                              f"{r['hlo_instructions']:,}", f"{r['error']:.0e}"])
         if body:
