@@ -21,7 +21,14 @@ import hybridjax as hj
 from hybridjax import examples
 from hybridjax._definition.kernels import Kernels
 from hybridjax._engines.batched import PER_COMPONENT_MAX_DIM
-from hybridjax._engines.dense_weights import ChebyshevDense, chebyshev_weights, dense_weights
+from hybridjax._engines.dense_weights import (
+    ChebyshevDense,
+    _dense_weights_fn,
+    _NotInNumpy,
+    _numpy_weights,
+    chebyshev_weights,
+    dense_weights,
+)
 from hybridjax._engines.xla_cpu import first_lanes, running_count
 from hybridjax._solve.simulate_batch import carries_derivatives
 
@@ -381,6 +388,48 @@ def test_dense_weights_give_diffrax_interpolation_and_its_slope(solver, dtype):
         fd = (np.asarray(ref.evaluate(t + d)) - np.asarray(ref.evaluate(t - d))) / (2 * d) * h
         np.testing.assert_allclose(da * y0 + db * y1 + np.asarray(dc) @ k, fd, rtol=max(tol, 1e-7),
                                    atol=max(tol, 1e-7))
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_dense_weights_evaluated_by_numpy_equal_the_compiled_interpolation(dtype):
+    # The weights come from the interpolation's program evaluated by numpy (`_numpy_weights`);
+    # XLA's compilation of the same program (`_dense_weights_fn`, the fallback) is a second
+    # evaluation: equal to rounding, for solvers whose programs use powers, scans, stacks and
+    # matrix products.
+    thetas = tuple(np.linspace(0.0, 1.0, 7))
+    for solver in (diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8(), diffrax.Bosh3(), diffrax.Kvaerno5()):
+        s = len(type(solver).tableau.c) + 1
+        ours = _numpy_weights(solver.interpolation_cls, s, thetas, jnp.dtype(dtype))
+        padded = np.zeros(16, dtype)
+        padded[:7] = thetas
+        xla = _dense_weights_fn(solver.interpolation_cls, s, 16, jnp.dtype(dtype))(padded)
+        for got, want in zip(ours, xla, strict=True):
+            want = np.asarray(want)[:7]
+            scale = 32 * np.finfo(dtype).eps * np.max(np.abs(want))
+            np.testing.assert_allclose(got, want, rtol=0, atol=scale, err_msg=type(solver).__name__)
+
+
+class _CumsumLine(eqx.Module):
+    # y0 + theta (y1 - y0), its fraction computed by a cumulative sum (a primitive the numpy
+    # evaluation does not know)
+    t0: jax.Array
+    t1: jax.Array
+    y0: jax.Array
+    y1: jax.Array
+    k: jax.Array
+
+    def evaluate(self, t):
+        theta = jnp.cumsum(jnp.stack([(t - self.t0) / (self.t1 - self.t0), 0 * t]))[-1]
+        return self.y0 + theta * (self.y1 - self.y0)
+
+
+def test_dense_weights_of_a_program_numpy_cannot_evaluate_are_compiled():
+    with pytest.raises(_NotInNumpy, match="cumsum"):
+        _numpy_weights(_CumsumLine, 1, (0.5,), jnp.dtype("float64"))
+    value, slope = dense_weights(_CumsumLine, 1, [0.0, 0.25, 1.0], jnp.float64)
+    for th, (a, b, c), (da, db, dc) in zip((0.0, 0.25, 1.0), value, slope, strict=True):
+        np.testing.assert_allclose([a, b, *c], [1 - th, th, 0.0], atol=1e-15)
+        np.testing.assert_allclose([da, db, *dc], [-1.0, 1.0, 0.0], atol=1e-15)
 
 
 class _StartsOff(eqx.Module):

@@ -21,8 +21,10 @@ def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
     y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
     are linear in y0, y1 and the stage increments k_i); computed at trace time, once per
     (solver, thetas, dtype) in a process, by one small function compiled once per solver and
-    dtype (thetas padded to a multiple of `_THETA_PAD`, so that every call shares it).
-    (Evaluated op by op, each primitive would compile on its own.)
+    dtype: the interpolation's program evaluated by numpy (`_numpy_weights`), or, where it uses a
+    primitive `_eval_numpy` does not know, compiled (thetas padded to a multiple of
+    `_THETA_PAD`, so that every call shares it). (Evaluated op by op in JAX, each primitive would
+    compile on its own.)
     """
     return _dense_weights(interpolation_cls, num_stages, tuple(float(t) for t in thetas),
                           jnp.dtype(dtype).name)
@@ -35,9 +37,12 @@ _THETA_PAD = 16
 def _dense_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype: str):
     m = len(thetas)
     dtype = jnp.dtype(dtype)
-    th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dtype)
-    th[:m] = thetas
-    both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(th)
+    try:
+        both = _numpy_weights(interpolation_cls, num_stages, thetas, dtype)
+    except _NotInNumpy:
+        th = np.zeros(-(-m // _THETA_PAD) * _THETA_PAD, dtype)
+        th[:m] = thetas
+        both = _dense_weights_fn(interpolation_cls, num_stages, th.shape[0], dtype)(th)
     out = []
     for weights in both:
         weights = np.asarray(weights)[:m]  # (thetas, basis)
@@ -53,6 +58,139 @@ def stage_combination(weights, y0, y1, ks):
     return a * y0 + b * y1 + weighted_sum(c, list(ks), y0)
 
 
+def _basis_interpolant(interpolation_cls, num_stages: int, dtype):
+    """theta -> the interpolant at theta on the unit interval for y0 = e_0, y1 = e_1 and
+    k_i = e_(2+i): the interpolant is linear in (y0, y1, k_i), so its value is the row of weights."""
+    eye = np.eye(2 + num_stages, dtype=dtype)
+
+    def value(th):
+        one, e = jnp.ones_like(th), jnp.asarray(eye)
+        return interpolation_cls(t0=0 * one, t1=one, y0=e[0], y1=e[1], k=e[2:]).evaluate(th)
+
+    return value
+
+
+def _numpy_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype):
+    """(value, slope) rows at each theta, as `_dense_weights_fn` computes them: the program of
+    the interpolant and its theta-derivative at one theta, traced once, evaluated by numpy at
+    each theta (`_eval_numpy`). Raises `_NotInNumpy` where the program uses a primitive
+    `_eval_numpy` does not know.
+
+    Why: the weights are needed while the caller's program is traced; compiling a program of
+    their own costs about a tenth of a second of a process's first call, tracing this one and
+    evaluating it a few milliseconds."""
+    value = _basis_interpolant(interpolation_cls, num_stages, dtype)
+    closed = jax.make_jaxpr(lambda th: jax.jvp(value, (th,), (jnp.ones_like(th),)))(np.zeros((), dtype))
+    rows = [_eval_numpy(closed.jaxpr, closed.consts, np.asarray(th, dtype)) for th in thetas]
+    return tuple(np.stack([r[i] for r in rows]) for i in range(2))
+
+
+class _NotInNumpy(Exception):
+    """A primitive `_eval_numpy` does not evaluate."""
+
+
+def _broadcast_in_dim(x, shape, broadcast_dimensions, **_):
+    kept = [1] * len(shape)
+    for axis, size in zip(broadcast_dimensions, np.shape(x), strict=True):
+        kept[axis] = size
+    return np.broadcast_to(np.reshape(x, kept), shape)
+
+
+def _dot_general(a, b, dimension_numbers, **_):
+    (ca, cb), (ba, bb) = dimension_numbers
+    letters = iter("abcdefghijklmnopqrstuvwxyz")
+    sa = [next(letters) for _ in range(np.ndim(a))]
+    sb = [next(letters) for _ in range(np.ndim(b))]
+    for i, j in zip((*ca, *ba), (*cb, *bb), strict=True):
+        sb[j] = sa[i]
+    out = [sa[i] for i in ba] + [c for i, c in enumerate(sa) if i not in (*ca, *ba)]
+    out += [c for j, c in enumerate(sb) if j not in (*cb, *bb)]
+    return np.einsum(f"{''.join(sa)},{''.join(sb)}->{''.join(out)}", a, b)
+
+
+def _scan(*args, jaxpr, length, reverse, num_consts, num_carry, **_):
+    if length == 0:
+        raise _NotInNumpy("scan of length 0")
+    split = num_consts + num_carry
+    consts, carry, xs = args[:num_consts], args[num_consts:split], args[split:]
+    ys = []
+    for i in (reversed(range(length)) if reverse else range(length)):
+        out = _eval_numpy(jaxpr.jaxpr, jaxpr.consts, *consts, *carry, *(x[i] for x in xs))
+        carry, y = out[:num_carry], out[num_carry:]
+        ys.append(y)
+    ys = ys[::-1] if reverse else ys
+    stacked = [np.stack([y[j] for y in ys]) for j in range(len(jaxpr.jaxpr.outvars) - num_carry)]
+    return (*carry, *stacked)
+
+
+def _divide(a, b):
+    if not np.issubdtype(np.result_type(a, b), np.inexact):
+        raise _NotInNumpy("div of integers")  # XLA rounds toward zero, numpy down
+    return np.divide(a, b)
+
+
+def _elementwise(fn):
+    """A numpy function of the inputs alone (an elementwise primitive's parameters, such as its
+    result's dtype, are applied by `_eval_numpy`)."""
+    return lambda *xs, **_: fn(*xs)
+
+
+# primitive name -> numpy function of (*inputs, **params) returning one array or a tuple.
+_NUMPY = {
+    **{name: _elementwise(fn) for name, fn in {
+        "add": np.add, "add_any": np.add, "sub": np.subtract, "mul": np.multiply, "div": _divide,
+        "neg": np.negative, "max": np.maximum, "min": np.minimum, "abs": np.abs, "sqrt": np.sqrt,
+        "exp": np.exp, "log": np.log, "sin": np.sin, "cos": np.cos, "square": np.square,
+        "eq": np.equal, "ne": np.not_equal, "lt": np.less, "le": np.less_equal, "gt": np.greater,
+        "ge": np.greater_equal, "and": np.logical_and, "or": np.logical_or, "not": np.logical_not,
+    }.items()},
+    "integer_pow": lambda x, y: x**y,
+    "select_n": lambda which, *cases: np.choose(np.asarray(which, int), np.broadcast_arrays(*cases)),
+    "convert_element_type": lambda x, new_dtype, **_: np.asarray(x).astype(new_dtype),
+    "slice": lambda x, start_indices, limit_indices, strides: x[tuple(
+        slice(a, b, c) for a, b, c in zip(start_indices, limit_indices, strides or [1] * len(start_indices),
+                                          strict=True))],
+    "squeeze": lambda x, dimensions: np.squeeze(x, axis=tuple(dimensions)),
+    "reshape": lambda x, new_sizes, dimensions=None, **_: np.reshape(x, new_sizes),
+    "stack": lambda *xs, axis: np.stack(xs, axis=axis),
+    "concatenate": lambda *xs, dimension: np.concatenate(xs, axis=dimension),
+    "transpose": lambda x, permutation: np.transpose(x, permutation),
+    "reduce_sum": lambda x, axes, **_: np.sum(x, axis=tuple(axes)),
+    "broadcast_in_dim": _broadcast_in_dim,
+    "dot_general": _dot_general,
+    "copy": lambda x: x, "copy_p": lambda x: x,
+    "jit": lambda *xs, jaxpr, **_: _eval_numpy(jaxpr.jaxpr, jaxpr.consts, *xs),
+    "pjit": lambda *xs, jaxpr, **_: _eval_numpy(jaxpr.jaxpr, jaxpr.consts, *xs),
+    "scan": _scan,
+}
+
+
+def _eval_numpy(jaxpr, consts, *args) -> list:
+    """The outputs of `jaxpr` evaluated by numpy, each in its variable's dtype; raises
+    `_NotInNumpy` at a primitive that `_NUMPY` lacks."""
+    env = {}
+
+    def read(v):
+        return np.asarray(v.val, v.aval.dtype) if hasattr(v, "val") else env[v]
+
+    for var, value in zip((*jaxpr.constvars, *jaxpr.invars), (*consts, *args), strict=True):
+        env[var] = np.asarray(value)
+    for eqn in jaxpr.eqns:
+        rule = _NUMPY.get(eqn.primitive.name)
+        if rule is None:
+            raise _NotInNumpy(eqn.primitive.name)
+        try:
+            out = rule(*map(read, eqn.invars), **eqn.params)
+        except _NotInNumpy:
+            raise
+        except Exception as e:  # a form of the primitive the rule does not cover: compile instead
+            raise _NotInNumpy(f"{eqn.primitive.name}: {e}") from e
+        outs = out if eqn.primitive.multiple_results else (out,)
+        for var, value in zip(eqn.outvars, outs, strict=True):
+            env[var] = np.asarray(value).astype(var.aval.dtype, copy=False)
+    return [read(v) for v in jaxpr.outvars]
+
+
 @functools.lru_cache(maxsize=16)
 def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype: str):
     """The compiled function behind `_dense_weights`: the interpolant and its theta-derivative
@@ -64,14 +202,7 @@ def _dense_weights_fn(interpolation_cls, num_stages: int, num_thetas: int, dtype
     compiled, on its own)."""
 
     dtype = jnp.dtype(dtype)
-    B = 2 + num_stages
-    # The interpolant is linear in (y0, y1, k_i): evaluated on a state of dimension B with
-    # y0 = e_0, y1 = e_1 and k_i = e_(2+i), its value is the row of weights itself.
-    eye = np.eye(B, dtype=dtype)
-
-    def value(th):
-        one, e = jnp.ones_like(th), jnp.asarray(eye)
-        return interpolation_cls(t0=0 * one, t1=one, y0=e[0], y1=e[1], k=e[2:]).evaluate(th)
+    value = _basis_interpolant(interpolation_cls, num_stages, dtype)
 
     def both(th):
         return jax.vmap(lambda s: jax.jvp(value, (s,), (jnp.ones_like(s),)))(th)
