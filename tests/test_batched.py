@@ -409,15 +409,18 @@ def test_dense_weights_evaluated_by_numpy_equal_the_compiled_interpolation(dtype
             np.testing.assert_allclose(got, want, rtol=0, atol=scale, err_msg=type(solver).__name__)
 
 
-class _CumsumLine(eqx.Module):
-    # y0 + theta (y1 - y0), its fraction computed by a cumulative sum (a primitive the numpy
-    # evaluation does not know)
+class _Interpolant(eqx.Module):
+    # the fields diffrax's interpolations take; a subclass gives `evaluate`
     t0: jax.Array
     t1: jax.Array
     y0: jax.Array
     y1: jax.Array
     k: jax.Array
 
+
+class _CumsumLine(_Interpolant):
+    # y0 + theta (y1 - y0), its fraction computed by a cumulative sum (a primitive the numpy
+    # evaluation does not know)
     def evaluate(self, t):
         theta = jnp.cumsum(jnp.stack([(t - self.t0) / (self.t1 - self.t0), 0 * t]))[-1]
         return self.y0 + theta * (self.y1 - self.y0)
@@ -432,14 +435,8 @@ def test_dense_weights_of_a_program_numpy_cannot_evaluate_are_compiled():
         np.testing.assert_allclose([da, db, *dc], [-1.0, 1.0, 0.0], atol=1e-15)
 
 
-class _StartsOff(eqx.Module):
+class _StartsOff(_Interpolant):
     # an interpolant that does not start at y0: y0 + k_0 + theta (y1 - y0)
-    t0: jax.Array
-    t1: jax.Array
-    y0: jax.Array
-    y1: jax.Array
-    k: jax.Array
-
     def evaluate(self, t):
         return self.y0 + self.k[0] + (t - self.t0) / (self.t1 - self.t0) * (self.y1 - self.y0)
 

@@ -20,11 +20,10 @@ def dense_weights(interpolation_cls, num_stages: int, thetas, dtype):
     Returns `(value, slope)`, each a list of (a, b, [c_i]) with
     y(theta) = a y0 + b y1 + sum_i c_i k_i and dy/dtheta likewise (diffrax's interpolations
     are linear in y0, y1 and the stage increments k_i); computed at trace time, once per
-    (solver, thetas, dtype) in a process, by one small function compiled once per solver and
-    dtype: the interpolation's program evaluated by numpy (`_numpy_weights`), or, where it uses a
-    primitive `_eval_numpy` does not know, compiled (thetas padded to a multiple of
-    `_THETA_PAD`, so that every call shares it). (Evaluated op by op in JAX, each primitive would
-    compile on its own.)
+    (solver, thetas, dtype) in a process, from the interpolation's program, traced once per solver
+    and dtype: evaluated by numpy (`_numpy_weights`), or, where it uses a primitive
+    `_eval_numpy` does not know, compiled (thetas padded to a multiple of `_THETA_PAD`, so that
+    every call shares it). (Evaluated op by op in JAX, each primitive would compile on its own.)
     """
     return _dense_weights(interpolation_cls, num_stages, tuple(float(t) for t in thetas),
                           jnp.dtype(dtype).name)
@@ -70,17 +69,24 @@ def _basis_interpolant(interpolation_cls, num_stages: int, dtype):
     return value
 
 
+@functools.lru_cache(maxsize=16)
+def _interpolant_program(interpolation_cls, num_stages: int, dtype):
+    """The program (a closed jaxpr) of the interpolant and its theta-derivative at one theta,
+    traced once per solver and dtype: every set of thetas (`chebyshev_weights`'s nodes, the
+    engines' samples) evaluates the same one."""
+    value = _basis_interpolant(interpolation_cls, num_stages, dtype)
+    return jax.make_jaxpr(lambda th: jax.jvp(value, (th,), (jnp.ones_like(th),)))(np.zeros((), dtype))
+
+
 def _numpy_weights(interpolation_cls, num_stages: int, thetas: tuple, dtype):
-    """(value, slope) rows at each theta, as `_dense_weights_fn` computes them: the program of
-    the interpolant and its theta-derivative at one theta, traced once, evaluated by numpy at
-    each theta (`_eval_numpy`). Raises `_NotInNumpy` where the program uses a primitive
-    `_eval_numpy` does not know.
+    """(value, slope) rows at each theta, as `_dense_weights_fn` computes them:
+    `_interpolant_program` evaluated by numpy at each theta (`_eval_numpy`). Raises
+    `_NotInNumpy` where the program uses a primitive `_eval_numpy` does not know.
 
     Why: the weights are needed while the caller's program is traced; compiling a program of
     their own costs about a tenth of a second of a process's first call, tracing this one and
-    evaluating it a few milliseconds."""
-    value = _basis_interpolant(interpolation_cls, num_stages, dtype)
-    closed = jax.make_jaxpr(lambda th: jax.jvp(value, (th,), (jnp.ones_like(th),)))(np.zeros((), dtype))
+    evaluating it about ten milliseconds."""
+    closed = _interpolant_program(interpolation_cls, num_stages, jnp.dtype(dtype))
     rows = [_eval_numpy(closed.jaxpr, closed.consts, np.asarray(th, dtype)) for th in thetas]
     return tuple(np.stack([r[i] for r in rows]) for i in range(2))
 

@@ -147,8 +147,6 @@ def _options_as_object(bound: inspect.BoundArguments, where: str) -> None:
     bound.arguments["shorthands"] = {name: value for name, value in given.items() if name not in mine}
 
 
-
-
 def _options_key(options: dict) -> tuple:
     """A set of XLA options as a hashable key."""
     return tuple(sorted(options.items()))
