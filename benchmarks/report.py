@@ -314,6 +314,24 @@ def _plot_block_size(res: dict) -> str:
     return _save(fig, "block_size.png")
 
 
+def lanes(res: dict) -> list[str]:
+    out = _page("lanes", "Lanes", res, "lanes.py",
+                "`simulate_batch` runs its executions on lanes (`lanes=`; see [Batches, devices and Monte "
+                "Carlo](../batches.md#lanes)): one lane per execution, whose lanes idle once their executions "
+                f"end, or {res['refill_lanes']:,} lanes, each taking the next execution when its own ends. "
+                "The number changes speed, never results. Tsit5, rtol = atol = 1e-9, one device, in one "
+                f"process, best of {res['rounds']} alternating runs; compile = trace + XLA compile; "
+                "*default*: the setting `simulate_batch` takes for that N.")
+    body = [[r["problem"], f"{r['n']:,}", r["label"], "yes" if r["default"] else "",
+             f"{r['compile_s']:.1f} s", f"{r['run_s'] * 1e3:,.0f} ms", _rate(r["per_s"]),
+             f"{r['ratio']:.2f}",
+             (f"{r['error']:.0e} (closed form)" if r["error_against"] == "closed form"
+              else f"differs from the refilled lanes by {r['error']:.0e}")] for r in res["rows"]]
+    out += _table(["problem", "N", "lanes", "default", "compile", "run", "executions/s", "run vs refilled",
+                   "error"], body)
+    return out
+
+
 def guard_cost(res: dict) -> list[str]:
     out = _page("guard_cost", "Cost of watching guards", res, "guard_cost.py",
                 f"N = {res['n']:,} executions, Tsit5, rtol = atol = 1e-9. A harmonic oscillator with no "
@@ -735,7 +753,7 @@ def _plot_trajopt(res: dict) -> str:
     return _save(fig, "trajopt.png")
 
 
-PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": block_size,
+PAGES = {"work_precision": work_precision, "per_core": per_core, "block_size": block_size, "lanes": lanes,
          "guard_cost": guard_cost, "gradient_cost": gradient_cost, "compile_time": compile_time,
          "eager_calls": eager_calls, "monte_carlo_zeno": monte_carlo_zeno, "numerical_limits": numerical_limits,
          "derivative_accuracy": derivative_accuracy, "first_call": first_call,

@@ -178,6 +178,16 @@ def test_batched_ball_matches_the_closed_form(ball_batch):
     assert len(one.hybrid_time_domain()) == int(one.num_events) + 1
 
 
+def test_default_lanes_one_per_execution_up_to_the_cap_then_refilled():
+    # The documented default (docs: Batches, "Lanes"): one lane per execution up to 200,000
+    # executions per device (20,000 for a differentiated call), else 10,000 lanes refilled.
+    from hybridjax._engines.lanes import default_lanes
+
+    assert [default_lanes(n, False) for n in (1, 40_000, 200_000, 200_001, 10**6)] == [
+        1, 40_000, 200_000, 10_000, 10_000]
+    assert [default_lanes(n, True) for n in (1, 20_000, 20_001, 10**6)] == [1, 20_000, 10_000, 10_000]
+
+
 def test_batched_args_and_per_execution_times():
     # execution i: its own restitution, start and end time; compared with simulate one by one
     x0 = jnp.array([[1.0, 0.0], [0.7, 0.4], [1.2, -0.5]])

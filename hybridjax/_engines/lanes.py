@@ -108,6 +108,30 @@ def default_block(lanes: int) -> int:
     return lanes if lanes <= 256 else max(64, lanes // 32)
 
 
+# `default_lanes`: one lane per execution up to these many executions per device (a forward
+# run; a differentiated one), else REFILL_LANES lanes, refilled (benchmarks/lanes.py).
+ONE_LANE_EACH_UP_TO = 200_000
+ONE_LANE_EACH_UP_TO_DIFFERENTIATED = 20_000
+REFILL_LANES = 10_000
+
+
+def default_lanes(executions: int, differentiated: bool) -> int:
+    """The default number of lanes of a device running `executions` executions.
+
+    One lane per execution up to `ONE_LANE_EACH_UP_TO` of them; above, `REFILL_LANES` lanes,
+    each taking the next execution when its own ends. Part of an iteration's cost does not grow
+    with its width (its kernels' start-up, the loop's bookkeeping), and a refill is a pass over
+    every lane in each iteration where some execution ends: up to 200,000 executions the one
+    wide batch, whose lanes idle once their executions end, runs faster than 10,000 refilled
+    lanes (the ball, the thermostat, the Van der Pol relay); above, the cost per execution of
+    the wide arrays, which grows with the width, tips it (docs: Lanes, measured). A
+    differentiated call keeps one lane per execution only up to
+    `ONE_LANE_EACH_UP_TO_DIFFERENTIATED`: its reverse pass stores every lane's state at each
+    checkpoint."""
+    cap = ONE_LANE_EACH_UP_TO_DIFFERENTIATED if differentiated else ONE_LANE_EACH_UP_TO
+    return executions if executions <= cap else REFILL_LANES
+
+
 def _take_lanes(a, idx):
     """Lanes `idx` of a lanes-last array (an index past the last lane reads the last lane)."""
     return jnp.take(a, idx, axis=-1, mode="clip")

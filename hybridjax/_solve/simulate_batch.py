@@ -17,7 +17,7 @@ from .._definition.kernels import Kernels
 from .._definition.system import AbstractHybridSystem, HybridSystem
 from .._definition.validation import as_state_array, check_time_span
 from .._engines.batched import BatchedLoop
-from .._engines.lanes import as_status
+from .._engines.lanes import as_status, default_lanes
 from .._rules.options import SolveOptions
 from .._solution.solution import Solution, stepping
 from .._step.runge_kutta import FastIController, UnrolledERK, can_unroll, split_clip
@@ -123,12 +123,12 @@ def simulate_batch(
       default) compiles the rare work for both sizes and takes the small block (one pass) in
       iterations where it holds every execution that needs the work, for a second compilation
       of it.
-    - `lanes`: how many executions advance together (default: all N up to 20,000, else
-      10,000). With fewer, a lane whose execution ends takes the next one not yet started, so
-      that a Monte Carlo batch keeps every lane busy while its executions take different
-      numbers of steps, and the loop's arrays are `lanes` wide whatever N is. Results do not
-      depend on it; speed does (fewer lanes than executions help large batches, whose
-      executions end at different times).
+    - `lanes`: how many executions advance together (default: all N up to 200,000, else
+      10,000; all N up to 20,000 when the call is differentiated). With fewer, a lane whose
+      execution ends takes the next one not yet started, so that a Monte Carlo batch keeps
+      every lane busy while its executions take different numbers of steps, and the loop's
+      arrays are `lanes` wide whatever N is. Results do not depend on it; speed does (the docs'
+      Lanes page measures it, from `benchmarks/lanes.py`).
       With several devices, `lanes` is the total, split evenly between them.
     - `devices`: the devices the executions are split over, in equal parts (`jax.shard_map`
       over a one-axis mesh; the last part padded by repeating the last execution, the padding
@@ -230,7 +230,7 @@ def simulate_batch(
     if lanes is not None:
         num_lanes = -(-int(lanes) // D)
     else:
-        num_lanes = per_device if per_device <= 20_000 else 10_000
+        num_lanes = default_lanes(per_device, differentiated)
     if block is None and differentiated:
         # Under reverse mode, passes over blocks are a checkpointed loop nested in the main
         # one: the reverse pass compiles about twice as long as with every lane as the block;
