@@ -47,6 +47,25 @@ def timed(fn, *args, repeat: int = 3):
     return max(first - best, 0.0), best, out
 
 
+def compiled_and_alternated(fns: dict, x, rounds: int) -> tuple[dict, dict]:
+    """Each jitted `fns[label]` compiled for `x` (trace + lower + XLA compile) and run once, then
+    all run in turn for `rounds` rounds, the order reversed every other round so that the
+    machine's drift touches each alike: ({label: (output, compile_s)}, {label: best run_s})."""
+    compiled, outs = {}, {}
+    for label, fn in fns.items():
+        t = time.perf_counter()
+        compiled[label] = fn.trace(x).lower().compile()
+        compile_s = time.perf_counter() - t
+        outs[label] = (jax.block_until_ready(compiled[label](x)), compile_s)
+    best = dict.fromkeys(compiled, float("inf"))
+    for r in range(rounds):
+        for label in (list(compiled) if r % 2 == 0 else list(compiled)[::-1]):
+            t = time.perf_counter()
+            jax.block_until_ready(compiled[label](x))
+            best[label] = min(best[label], time.perf_counter() - t)
+    return outs, best
+
+
 def write_json(name: str, payload: dict) -> Path:
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)

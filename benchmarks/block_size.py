@@ -15,12 +15,11 @@ results, so any difference would be a bug).
 """
 
 import sys
-import time
 
 import diffrax
 import jax
 import numpy as np
-from _common import machine_info, write_json
+from _common import compiled_and_alternated, machine_info, write_json
 from problems import ball, thermostat, vdp_relay
 
 import hybridjax as hj
@@ -44,21 +43,10 @@ def main(rounds: int = 5):
     for name, (make, n) in CASES.items():
         p = make()
         x0, m0 = p.sample(np.random.default_rng(0), n)
-        compiled, sols = {}, {}
-        for label, block in settings(n).items():
-            fn = jax.jit(lambda x, block=block: hj.simulate_batch(
-                p.system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
-                block=block))
-            t = time.perf_counter()
-            compiled[label] = fn.trace(x0).lower().compile()
-            compile_s = time.perf_counter() - t
-            sols[label] = (jax.block_until_ready(compiled[label](x0)), compile_s)
-        best = dict.fromkeys(compiled, float("inf"))
-        for r in range(rounds):
-            for label in (list(compiled) if r % 2 == 0 else list(compiled)[::-1]):
-                t = time.perf_counter()
-                jax.block_until_ready(compiled[label](x0))
-                best[label] = min(best[label], time.perf_counter() - t)
+        fns = {label: jax.jit(lambda x, block=block: hj.simulate_batch(
+            p.system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
+            block=block)) for label, block in settings(n).items()}
+        sols, best = compiled_and_alternated(fns, x0, rounds)
         if p.truth is not None:
             want, against = np.stack([p.truth(x, m)["final_state"] for x, m in zip(x0, m0, strict=True)]), "closed form"
         else:

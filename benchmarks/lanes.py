@@ -15,12 +15,11 @@ settings (B; the lanes give identical results, so any difference would be a bug)
 """
 
 import sys
-import time
 
 import diffrax
 import jax
 import numpy as np
-from _common import machine_info, write_json
+from _common import compiled_and_alternated, machine_info, write_json
 from problems import ball, thermostat, vdp_relay
 
 import hybridjax as hj
@@ -44,21 +43,10 @@ def main(rounds: int = 3):
         for n in sizes:
             x0, m0 = p.sample(np.random.default_rng(0), n)
             settings = {REFILLED: REFILL_LANES, ONE_EACH: n}
-            compiled, sols = {}, {}
-            for label, lanes in settings.items():
-                fn = jax.jit(lambda x, lanes=lanes: hj.simulate_batch(
-                    p.system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
-                    lanes=lanes, devices=1))
-                t = time.perf_counter()
-                compiled[label] = fn.trace(x0).lower().compile()
-                compile_s = time.perf_counter() - t
-                sols[label] = (jax.block_until_ready(compiled[label](x0)), compile_s)
-            best = dict.fromkeys(compiled, float("inf"))
-            for r in range(rounds):
-                for label in (list(compiled) if r % 2 == 0 else list(compiled)[::-1]):
-                    t = time.perf_counter()
-                    jax.block_until_ready(compiled[label](x0))
-                    best[label] = min(best[label], time.perf_counter() - t)
+            fns = {label: jax.jit(lambda x, lanes=lanes: hj.simulate_batch(
+                p.system, x, m0, 0.0, p.t1, p.args, stepsize_controller=ctrl, max_epochs=p.max_epochs,
+                lanes=lanes, devices=1)) for label, lanes in settings.items()}
+            sols, best = compiled_and_alternated(fns, x0, rounds)
             if p.truth is not None:
                 want = np.stack([p.truth(x, m)["final_state"] for x, m in zip(x0, m0, strict=True)])
                 against = "closed form"
