@@ -5,8 +5,8 @@ whose executions have ended idle until the last one ends; with fewer lanes, a la
 execution ends takes the next one not yet started (a refill: a pass over every lane in each
 iteration where some execution ends). Settings per batch size N: 10,000 lanes refilled and one
 lane per execution (`lanes=N`), and which of them `simulate_batch` picks by default
-(`hybridjax._engines.lanes.default_lanes`). Problems A (the ball), B (Van der Pol relay) and C
-(thermostat) of problems.py, Tsit5, rtol = atol = 1e-9, float64, one device; each setting
+(`hybridjax._engines.lanes.default_lanes`). Problems A (the ball), C (thermostat) and B (Van der
+Pol relay) of problems.py, in that order, Tsit5, rtol = atol = 1e-9, float64, one device; each setting
 compiled once, then the settings run in turn, alternating order, best of `--rounds` (default 3).
 Error: the largest final-state difference against the closed form (A, C) or between the two
 settings (B; the lanes give identical results, so any difference would be a bug).

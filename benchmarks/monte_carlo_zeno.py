@@ -8,8 +8,10 @@ run time, executions/s, peak resident memory and the Zeno fraction with its 95% 
 Writes results/monte_carlo_zeno.json (the run's figures, the status counts, the Zeno fraction with
 its interval and the closed-form fraction, Zeno-time and event-count statistics).
 
-    python benchmarks/monte_carlo_zeno.py [N] [chunk] [lanes]   # default 1,000,000, 50,000, and
-                                                                # simulate_batch's default lanes
+    python benchmarks/monte_carlo_zeno.py [N] [chunk] [lanes]   # default 1,000,000, 50,000, 10,000
+
+Lanes: 10,000 per chunk, refilled as executions end (Zeno executions stop early, at different
+times); `simulate_batch`'s own default for a chunk of 50,000 is one lane per execution.
 """
 
 import resource
@@ -35,7 +37,7 @@ def sampler(key, m):
 def main():
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 1_000_000
     chunk = int(sys.argv[2]) if len(sys.argv) > 2 else 50_000
-    lanes = int(sys.argv[3]) if len(sys.argv) > 3 else None
+    lanes = int(sys.argv[3]) if len(sys.argv) > 3 else 10_000
     key = jax.random.PRNGKey(42)
     ball = hj.examples.bouncing_ball()
     res = hj.monte_carlo(ball, sampler, n, mode0="flight", t1=4.0, key=key, chunk_size=chunk,

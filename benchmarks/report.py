@@ -326,6 +326,7 @@ def lanes(res: dict) -> list[str]:
              f"{r['compile_s']:.1f} s", f"{r['run_s'] * 1e3:,.0f} ms", _rate(r["per_s"]),
              f"{r['ratio']:.2f}",
              (f"{r['error']:.0e} (closed form)" if r["error_against"] == "closed form"
+              else "reference" if r["lanes"] == res["refill_lanes"]
               else f"differs from the refilled lanes by {r['error']:.0e}")] for r in res["rows"]]
     out += _table(["problem", "N", "lanes", "default", "compile", "run", "executions/s", "run vs refilled",
                    "error"], body)

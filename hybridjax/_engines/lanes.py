@@ -124,10 +124,11 @@ def default_lanes(executions: int, differentiated: bool) -> int:
     every lane in each iteration where some execution ends: up to 200,000 executions the one
     wide batch, whose lanes idle once their executions end, runs faster than 10,000 refilled
     lanes (the ball, the thermostat, the Van der Pol relay); above, the cost per execution of
-    the wide arrays, which grows with the width, tips it (docs: Lanes, measured). A
-    differentiated call keeps one lane per execution only up to
-    `ONE_LANE_EACH_UP_TO_DIFFERENTIATED`: its reverse pass stores every lane's state at each
-    checkpoint."""
+    the wide arrays, which grows with the width, tips it (docs: Lanes, measured). A call
+    through which a derivative is taken (`differentiated`, as `simulate_batch` decides it for
+    its default block) keeps one lane per execution only up to
+    `ONE_LANE_EACH_UP_TO_DIFFERENTIATED`: each lane carries a derivative (a tangent, or in
+    reverse mode its state at every checkpoint), which multiplies the memory per lane."""
     cap = ONE_LANE_EACH_UP_TO_DIFFERENTIATED if differentiated else ONE_LANE_EACH_UP_TO
     return executions if executions <= cap else REFILL_LANES
 

@@ -123,11 +123,13 @@ def simulate_batch(
       default) compiles the rare work for both sizes and takes the small block (one pass) in
       iterations where it holds every execution that needs the work, for a second compilation
       of it.
-    - `lanes`: how many executions advance together (default: all N up to 200,000, else
-      10,000; all N up to 20,000 when the call is differentiated). With fewer, a lane whose
-      execution ends takes the next one not yet started, so that a Monte Carlo batch keeps
-      every lane busy while its executions take different numbers of steps, and the loop's
-      arrays are `lanes` wide whatever N is. Results do not depend on it; speed does (the docs'
+    - `lanes`: how many executions advance together (default: one lane per execution up to
+      200,000 executions per device, else 10,000 per device; up to 20,000 when `jax.grad`, `jax.jvp`
+      or another derivative is being taken through the call with the default `adjoint` or
+      `ForwardMode`, whose lanes carry a derivative each). With fewer, a lane whose execution
+      ends takes the next one not yet started, so that a Monte Carlo batch keeps every lane
+      busy while its executions take different numbers of steps, and the loop's arrays are
+      `lanes` wide whatever N is. Results do not depend on it; speed and memory do (the docs'
       Lanes page measures it, from `benchmarks/lanes.py`).
       With several devices, `lanes` is the total, split evenly between them.
     - `devices`: the devices the executions are split over, in equal parts (`jax.shard_map`
