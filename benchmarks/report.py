@@ -710,6 +710,13 @@ def scenes(res: dict) -> list[str]:
                 f"{w['walker_first_simulate_s']:.1f} s{_cpu(w, 'walker_first_simulate_cpu_s')}, batch compile "
                 f"{w['mask_compile_s']:.1f} s ({w['mask_compile_cpu_s']:.1f} s CPU), "
                 f"{_rate(w['mask_exec_per_s'])} executions/s of T = 3 s."]
+    if "friction_rod" in res:
+        r = res["friction_rod"]
+        out += ["", "A rod with Coulomb friction at its left end (`hj.examples.rod_scene(friction=(\"left\",))`, "
+                f"mu = 0.3): {r['modes']} modes, {r['transitions']} transitions; build {r['build_s']:.1f} s"
+                f"{_cpu(r, 'build_cpu_s')}, first `hj.simulate` compiled and run {r['first_simulate_s']:.1f} s"
+                f"{_cpu(r, 'first_simulate_cpu_s')} (T = 1 s, rtol = atol = 1e-11: {r['events']} events, "
+                f"`{r['status']}`)."]
     return out
 
 

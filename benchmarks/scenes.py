@@ -15,9 +15,13 @@ foot armed ahead of it, legs relabelled at heel strike): its build, the compile 
 and of the batch, and executions per second, N = 256 executions of T = 3 s from a stance state with
 the hip's angular rate in [1.0, 1.4].
 
+A rod with Coulomb friction at one end (`hj.examples.rod_scene(friction=("left",))`): its build (the
+friction states' point searches) and its first `hj.simulate`, compiled and run.
+
     python benchmarks/scenes.py            # K = 1 ... 8 and the walker; writes results/scenes.json
     python benchmarks/scenes.py 1 2 3      # only these K (merged into an existing results file)
     python benchmarks/scenes.py walker     # only the walker
+    python benchmarks/scenes.py rod        # only the rod with friction
 """
 
 import json
@@ -162,6 +166,32 @@ def walker() -> dict:
     return row
 
 
+ROD_ARGS = {"m": 1.0, "g": 9.81, "L": 1.0, "mu": 0.3}
+
+
+def friction_rod() -> dict:
+    """The rod with Coulomb friction at its left end (`hj.examples.rod_scene(friction=("left",))`,
+    mu = 0.3): its build from the free state and the first `hj.simulate` (compiled and run),
+    dropped at x = 0.1, z = 0.5, phi = 0.3 from rest for T = 1 s (rtol = atol = 1e-11)."""
+    args = {key: jnp.asarray(v) for key, v in ROD_ARGS.items()}
+    t, cpu = time.perf_counter(), time.process_time()
+    system = hj.contact_system(hj.examples.rod_scene(friction=("left",)), ["free"], args)
+    build_s, build_cpu_s = time.perf_counter() - t, time.process_time() - cpu
+    ctrl = diffrax.PIDController(rtol=1e-11, atol=1e-11)
+    one = jax.jit(lambda x: hj.simulate(system, x, system.mode_index("free"), 0.0, 1.0, args,
+                                        stepsize_controller=ctrl, max_epochs=16))
+    t, cpu = time.perf_counter(), time.process_time()
+    sol = jax.block_until_ready(one(jnp.asarray([0.1, 0.5, 0.3, 0.0, 0.0, 0.0])))
+    first_s, first_cpu_s = time.perf_counter() - t, time.process_time() - cpu
+    row = {"modes": system.num_modes, "transitions": system.num_transitions, "build_s": build_s,
+           "build_cpu_s": build_cpu_s, "first_simulate_s": first_s, "first_simulate_cpu_s": first_cpu_s,
+           "events": int(sol.num_events), "status": hj.STATUS_NAMES[int(sol.status)]}
+    print(f"friction rod: {system.num_modes} modes, build {build_s:.1f} s ({build_cpu_s:.1f} s CPU), first "
+          f"simulate {first_s:.1f} s ({first_cpu_s:.1f} s CPU), {row['events']} events, {row['status']}",
+          flush=True)
+    return row
+
+
 def main():
     from pathlib import Path
 
@@ -170,6 +200,7 @@ def main():
     old = json.loads(path.read_text()) if path.exists() and args else {}
     rows = {r["K"]: r for r in old.get("rows", [])}
     walker_row = old.get("walker")
+    rod_row = old.get("friction_rod")
 
     def write():
         write_json(
@@ -181,13 +212,17 @@ def main():
                 "forms": FORMS,
                 "rows": [rows[k] for k in sorted(rows)],
                 **({"walker": walker_row} if walker_row else {}),
+                **({"friction_rod": rod_row} if rod_row else {}),
             },
         )
 
-    if not args or args == ["walker"]:
+    if not args or "walker" in args:
         walker_row = walker()
         write()
-    for k in [int(a) for a in args if a != "walker"] or ([] if args else list(range(1, 9))):
+    if not args or "rod" in args:
+        rod_row = friction_rod()
+        write()
+    for k in [int(a) for a in args if a.isdigit()] or ([] if args else list(range(1, 9))):
         # The branch form compiles in minutes from K = 4 on (its program grows with the modes built).
         rows[k] = one_k(k, FORMS if k <= BRANCH_UP_TO else FORMS[:1])
         write()

@@ -259,8 +259,8 @@ def run_rod(x0, mode, mu, t1):
     )
 
 
-# The system has 8 states (20 modes, 43 transitions): its build and compile take a few minutes on
-# 2 cores.
+# The system has 8 states (20 modes, 43 transitions): its build and compile take more than a
+# minute on 2 cores.
 @pytest.mark.slow
 def test_rod_lands_slips_back_lands_and_stops_as_computed_by_hand():
     modes, times, final = rod_by_hand(0.1, 0.5, 0.3, ROD_MU)

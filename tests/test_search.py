@@ -128,6 +128,20 @@ def test_refinement_from_points_where_every_derivative_is_not_finite_ends():
     np.testing.assert_allclose(np.asarray(w.x), [1.0, 2.0], atol=1e-6)
 
 
+def test_the_refinement_differentiates_the_residuals_through_their_jacobian_with_non_finite_entries_zero():
+    # r(y) = (sqrt(y0), y0 y1): at y = (0, 2) the Jacobian is [[inf, 0], [2, 0]]; the tangent
+    # along v = (3, 5) is J v with the infinite entry set to 0: (0, 6), by hand.
+    from hybridjax._analysis.search import _with_jacobian
+
+    r = _with_jacobian(lambda y: jnp.stack([jnp.sqrt(y[0]), y[0] * y[1]]))
+    value, tangent = jax.jvp(lambda y: r(y, None), (jnp.array([0.0, 2.0]),), (jnp.array([3.0, 5.0]),))
+    np.testing.assert_array_equal(np.asarray(value), [0.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(tangent), [0.0, 6.0])
+    # Where every entry is finite, the tangent is the residuals' own (y = (4, 2): [[1/4, 0], [2, 4]]).
+    _, tangent = jax.jvp(lambda y: r(y, None), (jnp.array([4.0, 2.0]),), (jnp.array([3.0, 5.0]),))
+    np.testing.assert_allclose(np.asarray(tangent), [0.75, 26.0], rtol=1e-15)
+
+
 def test_bad_input_is_named():
     with pytest.raises(ValueError, match="both are None"):
         hj.find_point(None, None, jnp.zeros(2), jnp.zeros((2, 1)))
