@@ -139,10 +139,8 @@ def _angle_of(t, lo, hi):
 class _DampedLeastSquares(lx.AbstractLinearSolver):
     """The least-squares step of the search: `_small_linalg.least_squares` (damped normal
     equations, close to the least-norm solution where the Jacobian is rank-deficient) of the
-    Jacobian with its non-finite entries set to 0.
+    Jacobian's matrix, whose non-finite entries `_with_jacobian` has already set to 0.
 
-    A constraint can have a non-finite derivative at a sample (a contact system's equations
-    where its constraints are dependent): a zero column leaves that direction out of the step.
     Written as array operations rather than LAPACK's SVD, whose custom call can wait forever on
     the thread pool when other such calls run at once (see `_small_linalg`). Only `compute` is
     used by optimistix's least-squares solvers (the search is not differentiated through).
@@ -150,8 +148,7 @@ class _DampedLeastSquares(lx.AbstractLinearSolver):
 
     def init(self, operator, options):
         del options
-        matrix = operator.as_matrix()
-        return jnp.where(jnp.isfinite(matrix), matrix, 0.0)
+        return operator.as_matrix()
 
     def compute(self, state, vector, options):
         del options
@@ -184,9 +181,10 @@ def _with_jacobian(residuals: Callable[[Array], Array]) -> Callable[[Array, Any]
     between iterations. A linearisation of `r` itself keeps every intermediate value of `r`
     (a contact system's kinematics and solves: thousands of arrays, each selected per lane
     under `jax.vmap`); this one keeps the (m, n) matrix alone: a program about half the size,
-    traced and compiled in under half the time. With the non-finite entries set to 0 (a constraint whose
-    derivative is not finite at the iterate), the descent's every use of the Jacobian (its
-    Gauss-Newton and Cauchy steps) leaves that direction out, as `_DampedLeastSquares` does."""
+    traced and compiled in under half the time. A constraint can have a non-finite derivative
+    at an iterate (a contact system's equations where its constraints are dependent): with
+    those entries 0, every use of the Jacobian by the descent (its Gauss-Newton and Cauchy
+    steps, `_DampedLeastSquares`) leaves that direction out."""
 
     @jax.custom_jvp
     def r(y):
