@@ -157,19 +157,20 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
         return jax.jvp(f, (x,), (one,))
 
     def evaluate(x):
-        """f, f' and f'' at x from one nested JVP, carried into the next iteration, where
-        every output reads them (evaluated inside the update, XLA copies the evaluation into
-        each output's fusion)."""
+        """f, f' and f'' at x from one nested JVP. Read by every output of the iteration: computed
+        once behind a barrier (else XLA copies the evaluation into each output's fusion)."""
         (fx, d1), (_, d2) = jax.jvp(value_and_slope, (x,), (one,))
-        return jnp.stack([fx, d1, d2])
+        return lax.optimization_barrier((fx, d1, d2))
 
     def cond(c):
-        a, b, _, step, f_best, _, i, _ = c
+        a, b, _, step, f_best, _, i = c
         return (f_best >= 0) & (b - a > tol) & (jnp.abs(step) > 0.5 * tol) & (i < max_iter)
 
     def body(c):
-        a, b, x, _, f_best, x_best, i, ev = c
-        fx, d1, d2 = ev[0], ev[1], ev[2]
+        # The iterate is evaluated here, at the start of the iteration, not carried from the
+        # previous one: f's second-order evaluation appears once in the program.
+        a, b, x, _, f_best, x_best, i = c
+        fx, d1, d2 = evaluate(x)
         better = fx < f_best
         f_best, x_best = jnp.where(better, fx, f_best), jnp.where(better, x, x_best)
         a = jnp.where(d1 < 0, x, a)
@@ -178,20 +179,11 @@ def locate_minimum(f, a, b, x0, tol, max_iter: int = 32):
         ok = (d2 > 0) & jnp.isfinite(xn) & (xn > a) & (xn < b)
         xn = jnp.where(ok, xn, 0.5 * (a + b))
         step = jnp.where(d1 == 0, 0.0, xn - x)
-        return a, b, xn, step, f_best, x_best, i + 1, evaluate(xn)
+        return a, b, xn, step, f_best, x_best, i + 1
 
-    x_init = jnp.clip(x0, a, b)
-    init = (
-        a,
-        b,
-        x_init,
-        jnp.asarray(jnp.inf, x0.dtype),
-        jnp.asarray(jnp.inf, x0.dtype),
-        x0,
-        jnp.array(0),
-        evaluate(x_init),
-    )
-    _, _, _, _, f_best, x_best, _, _ = lax.while_loop(cond, body, init)
+    init = (a, b, jnp.clip(x0, a, b), jnp.asarray(jnp.inf, x0.dtype), jnp.asarray(jnp.inf, x0.dtype), x0,
+            jnp.array(0))
+    _, _, _, _, f_best, x_best, _ = lax.while_loop(cond, body, init)
     return x_best, f_best
 
 
@@ -231,8 +223,8 @@ class BracketedNewton(AbstractEventLocator):
     probe towards the root so that the bracket closes once Newton converges, then one Newton
     step from the right end put a few ulps past the root
     (`locate_root`). `minimum`: Newton on f' (f'' by nested forward-mode AD) inside the
-    bracket of f' changing sign, stopping at the first f < 0 (`locate_minimum`).
-    `max_iter` and `max_iter_minimum` bound the iterations of each.
+    bracket of f' changing sign, stopping at the first f < 0 (`locate_minimum`; f'' appears once
+    in its loop). `max_iter` and `max_iter_minimum` bound the iterations of each.
     """
 
     max_iter: int = 64
