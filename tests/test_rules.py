@@ -5,6 +5,7 @@ its lanes); `tests/test_architecture.py` checks that both do. Whole runs are tes
 """
 
 import math
+from unittest.mock import patch
 
 import diffrax
 import equinox as eqx
@@ -12,9 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax import lax
 
 from hybridjax import _rules as R
 from hybridjax import examples
+from hybridjax._core.jaxprs import equation_count
 from hybridjax._core.status import Status
 from hybridjax._definition.kernels import GuardJets, Kernels
 from hybridjax._rules.locate import BracketedNewton
@@ -317,12 +320,41 @@ def test_needs_location_is_any_crossing_or_dip_candidate():
 
 
 # ---------------------------------------------------------------------------- location
-def test_locate_root_brackets_the_root_from_the_right():
-    r = float(R.locate_root(lambda x: 2.0 - x * x, jnp.asarray(1.0), jnp.asarray(2.0), 1e-12))
+@pytest.mark.parametrize("one_copy", [False, True])
+def test_locate_root_brackets_the_root_from_the_right(one_copy):
+    r = float(R.locate_root(lambda x: 2.0 - x * x, jnp.asarray(1.0), jnp.asarray(2.0), 1e-12, one_copy=one_copy))
     assert 0.0 <= r - math.sqrt(2.0) <= 1e-12 and 2.0 - r * r <= 0.0
 
 
-def test_root_bracket_closes_in_a_few_newton_iterations_on_a_million_roots():
+def test_the_root_search_holds_a_large_function_once():
+    # Written out, the search evaluates f at five places in its program; as one loop, at one.
+    # `equation_count` counts the equations of nested jaxprs too (here a while loop's body).
+    def small(x):
+        return 2.0 - x * x
+
+    def large(x):
+        return lax.fori_loop(0, 3, lambda i, v: v + 0.0 * jnp.sin(v) * jnp.cos(v), 2.0 - x * x)
+
+    x = jnp.asarray(1.5)
+    n_small, n_large = equation_count(small, x), equation_count(large, x)
+    assert n_small == 2 and n_large > n_small + 5  # small: mul, sub
+
+    def copies(f, one_copy):
+        jaxpr = jax.make_jaxpr(lambda a, b: R.locate_root(f, a, b, 1e-12, one_copy=one_copy))(x - 0.5, x + 0.5)
+        return str(jaxpr).count("sin")
+
+    # A value-and-slope evaluation of `large` holds sin twice (sin, and -sin in cos' tangent), a
+    # value alone once: written out, the ends, the iterate and b (3 x 2) and the probe and the
+    # candidates (2 x 1); as one loop, one value-and-slope evaluation.
+    assert copies(large, False) == 8 and copies(large, True) == 2
+    with patch.object(R.locate, "ONE_COPY_ABOVE", n_small):
+        assert copies(large, None) == copies(large, True)
+    with patch.object(R.locate, "ONE_COPY_ABOVE", n_large):
+        assert copies(large, None) == copies(large, False)
+
+
+@pytest.mark.parametrize("one_copy", [False, True])
+def test_root_bracket_closes_in_a_few_newton_iterations_on_a_million_roots(one_copy):
     # Under vmap every execution waits for the slowest: the search must close its bracket in
     # Newton's few iterations on every root, also where a converged Newton point lands within
     # rounding of the bracket's end (a bisection from there takes ~40 halvings).
@@ -336,7 +368,7 @@ def test_root_bracket_closes_in_a_few_newton_iterations_on_a_million_roots():
             return (r - x) * (1.0 + 0.3 * c * (x - r)) * (2.0 + jnp.sin(x))
 
         tol = 1e-12 * (b - a)
-        return R.root_bracket(f, a, b, tol)[2], R.locate_root(f, a, b, tol), tol
+        return R.root_bracket(f, a, b, tol, one_copy=one_copy)[2], R.locate_root(f, a, b, tol, one_copy=one_copy), tol
 
     iterations, x, tol = map(np.asarray, jax.jit(jax.vmap(one))(r, c, a, b))
     assert iterations.max() <= 8
@@ -363,7 +395,8 @@ def test_hermite_start_is_the_root_of_a_cubic():
     assert np.median(err) <= 1e-15 and err.max() <= 2e-15
 
 
-def test_a_falling_balls_root_closes_in_one_iteration():
+@pytest.mark.parametrize("one_copy", [False, True])
+def test_a_falling_balls_root_closes_in_one_iteration(one_copy):
     # A height h0 + v t - g t^2 / 2 (the ball's guard along its exact flow) is its own Hermite
     # interpolant: on a bracket where it falls, the search starts at the landing time and its
     # first probe closes the bracket.
@@ -379,7 +412,7 @@ def test_a_falling_balls_root_closes_in_one_iteration():
             return h0 + v * t - 4.9 * t * t
 
         tol = 1e-12
-        return R.root_bracket(f, a, b, tol)[2], R.locate_root(f, a, b, tol)
+        return R.root_bracket(f, a, b, tol, one_copy=one_copy)[2], R.locate_root(f, a, b, tol, one_copy=one_copy)
 
     iterations, t = map(np.asarray, jax.jit(jax.vmap(one))(h0, v, a, b))
     assert iterations.max() == 1

@@ -23,3 +23,21 @@ def closure_converted(fn: Callable, *example_args):
         return jtu.tree_unflatten(out_tree, jax.core.eval_jaxpr(closed.jaxpr, consts, *jtu.tree_leaves(args)))
 
     return fn_c, list(closed.consts), out_shape
+
+
+def equation_count(fn: Callable, *example_args) -> int:
+    """The number of equations of `fn`'s jaxpr for arguments shaped as `example_args`, those of
+    the jaxprs nested in its equations (calls, loops, conditionals, custom derivatives) included:
+    a measure of the program `fn` adds at each place it is traced."""
+    def count(jaxpr) -> int:
+        total = 0
+        for eqn in jaxpr.eqns:
+            total += 1
+            for param in eqn.params.values():
+                for sub in param if isinstance(param, (tuple, list)) else (param,):
+                    inner = getattr(sub, "jaxpr", sub)  # a ClosedJaxpr holds its Jaxpr
+                    if hasattr(inner, "eqns"):
+                        total += count(inner)
+        return total
+
+    return count(jax.make_jaxpr(fn)(*example_args).jaxpr)

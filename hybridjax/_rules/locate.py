@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .._core.jaxprs import closure_converted
+from .._core.jaxprs import closure_converted, equation_count
 from .._definition.kernels import Kernels
 from .._step.runge_kutta import unrolled_sum
 from .records import Brackets, Detection, EventChoice
@@ -25,7 +25,14 @@ sg = lax.stop_gradient
 
 
 # ---------------------------------------------------------------------------- location
-def locate_root(f, a, b, tol, max_iter: int = 64):
+# A root search whose function has more equations than this (`equation_count`) is written as
+# one loop that holds the function once (`_root_search_one_copy`); below, written out, with the
+# function at each place it is evaluated (`_root_search_written_out`), which runs faster: the
+# ball's guard has ~30 equations, a friction scene's watched values thousands.
+ONE_COPY_ABOVE = 400
+
+
+def locate_root(f, a, b, tol, max_iter: int = 64, one_copy: bool | None = None):
     """Right end of a bracket [a, b] of a root of f, f(a) > 0 >= f(b), narrower than `tol`.
 
     Newton's method with the derivative of f (forward-mode AD) from the root of the cubic
@@ -40,33 +47,94 @@ def locate_root(f, a, b, tol, max_iter: int = 64):
     land within rounding noise of the root, and bisect ~40 times instead). A final
     Newton step from the right end then puts it a few ulps past the root (g <= 0 kept).
     No gradients: the caller differentiates the event time by the implicit function theorem.
+
+    `one_copy`: the search as one loop holding f once (`_root_search_one_copy`), or written
+    out (False); None: one loop where f has more than `ONE_COPY_ABOVE` equations.
     """
-    a, b = root_bracket(f, a, b, tol, max_iter)[:2]
-    # Polish: one Newton step from b (within tol of the root, so it lands within rounding of
-    # it), then the first of three points 4, 16, 64 ulp to its right where f <= 0, else b. The
-    # few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its
-    # arithmetic rounds differently by an ulp or so).
-    fb, dfb = jax.jvp(f, (b,), (jnp.ones_like(b),))
+    return _root_search(f, a, b, tol, max_iter, True, one_copy)[1]
+
+
+def root_bracket(f, a, b, tol, max_iter: int = 64, one_copy: bool | None = None):
+    """`locate_root`'s bracket search: `(a, b, iterations)`, the bracket narrower than `tol`
+    (or after `max_iter` iterations) and the iterations it took, each an iterate and its probe."""
+    return _root_search(f, a, b, tol, max_iter, False, one_copy)
+
+
+def _root_search(f, a, b, tol, max_iter: int, polish: bool, one_copy: bool | None):
+    a, b, tol = lax.stop_gradient((a, b, tol))
+    if one_copy is None:
+        one_copy = equation_count(f, b) > ONE_COPY_ABOVE
+    search = _root_search_one_copy if one_copy else _root_search_written_out
+    return search(f, a, b, tol, max_iter, polish)
+
+
+def _slope(f):
+    """x -> (f(x), f'(x)) by forward-mode AD."""
+    return lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),))
+
+
+def _probe_delta(x, dx, tol):
+    """The probe's distance from the iterate x: 2 |dx| (dx the last Newton step) clipped to
+    [max(tol/1000, 4 ulp), tol/2]."""
+    floor = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
+    return jnp.clip(2 * jnp.abs(dx), floor, jnp.maximum(0.5 * tol, floor))
+
+
+def _narrow(a, b, points):
+    """The bracket [a, b] narrowed by the points `(x, f(x))`: f(x) > 0 moves a up to x, f(x) <= 0
+    moves b down to x, a non-finite f(x) neither. Written out, not stacked: elementwise code
+    that XLA fuses into a few kernels (a stack and a reduction over it do not fuse under vmap)."""
+    for p, fp in points:
+        finite = jnp.isfinite(fp)
+        a = jnp.where(finite & (fp > 0), jnp.maximum(a, p), a)
+        b = jnp.where(finite & (fp <= 0), jnp.minimum(b, p), b)
+    return a, b
+
+
+def _newton_or_bisect(x, fx, dfx, a, b, dx_old, tol):
+    """The next iterate from x in the bracket [a, b], as in rtsafe: Newton's step if it stays in
+    the bracket and is at most half the step before last, `dx_old` (converging), else the
+    bracket's midpoint. A converging step that lands within `tol` outside the bracket has found
+    a root within rounding of the bracket's end (a probe put that end there): clamped to the
+    end, the next probe closes the bracket, where a bisection of the whole bracket would take
+    ~40 halvings."""
+    step = fx / jnp.where(dfx != 0, dfx, 1.0)
+    xn = x - step
+    converging = (dfx != 0) & jnp.isfinite(xn) & (2 * jnp.abs(step) <= jnp.abs(dx_old))
+    near = (xn > a - tol) & (xn < b + tol)
+    return jnp.where(converging & near, jnp.clip(xn, a, b), 0.5 * (a + b))
+
+
+# The polish: from the Newton point x_p = b - f(b) / f'(b) (b within tol of the root, so x_p
+# within rounding of it), the first of x_p + 4, 16, 64 ulp in (a, b] where f <= 0, else b. The
+# few ulps of margin keep g <= 0 when the caller re-evaluates the state there (its arithmetic
+# rounds differently by an ulp or so).
+_POLISH_ULPS = (64.0, 16.0, 4.0)  # in the order written: the last good one wins
+
+
+def _polish_points(b, fb, dfb):
+    """The candidates x_p + 64, 16, 4 ulp of the polish (see `_POLISH_ULPS`)."""
     xp = b - fb / jnp.where(dfb != 0, dfb, 1.0)
     ulp = jnp.finfo(b.dtype).eps * jnp.maximum(jnp.abs(xp), jnp.finfo(b.dtype).tiny)
-    cands = xp + jnp.array([64.0, 16.0, 4.0], xp.dtype) * ulp
-    f_cands = lax.map(f, cands)  # one evaluation of f in the program, run three times
+    return [xp + m * ulp for m in _POLISH_ULPS]
+
+
+def _polished(a, b, cands, f_cands, slope_ok):
+    """The polish's result: the nearest candidate to x_p in (a, b] with f <= 0, else b."""
     out = b
-    for i in range(3):  # the last one written wins: the first good one
-        cand = cands[i]
-        good = (f_cands[i] <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & (dfb != 0)
+    for cand, fc in zip(cands, f_cands, strict=True):
+        good = (fc <= 0) & (cand > a) & (cand <= b) & jnp.isfinite(cand) & slope_ok
         out = jnp.where(good, cand, out)
     return out
 
 
-def root_bracket(f, a, b, tol, max_iter: int = 64):
-    """`locate_root`'s bracket search: `(a, b, iterations)`, the bracket narrower than `tol`
-    (or after `max_iter` iterations) and the iterations it took."""
-    a, b, tol = lax.stop_gradient((a, b, tol))
-    # Value and slope at each end, each point its own evaluation: `jax.vmap(f)` over a few points
-    # makes the interpolant's small matrix product a batched one, 1.5x slower for one execution
-    # and no faster for many. `lax.map` evaluates them one after the other from one copy of f.
-    (fa, fb), (da, db) = lax.map(lambda x: jax.jvp(f, (x,), (jnp.ones_like(x),)), jnp.stack([a, b]))
+def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
+    """The search with f at each place it is evaluated: the ends' values and slopes (`lax.map`,
+    one point after the other from one copy of f: `jax.vmap` over them makes a small matrix
+    product of an interpolant a batched one, slower for one execution and no faster for many),
+    then a loop whose iterations evaluate the iterate (value and slope) and its probe (value),
+    then the polish's Newton point and its candidates."""
+    (fa, fb), (da, db) = lax.map(_slope(f), jnp.stack([a, b]))
     x0 = hermite_root(a, b, fa, fb, da, db)
 
     def cond(c):
@@ -75,34 +143,87 @@ def root_bracket(f, a, b, tol, max_iter: int = 64):
 
     def body(c):
         a, b, x, dx, dx_old, i = c
-        fx, dfx = jax.jvp(f, (x,), (jnp.ones_like(x),))
-        floor = jnp.maximum(1e-3 * tol, 4 * jnp.finfo(x.dtype).eps * jnp.abs(x))
-        delta = jnp.clip(2 * jnp.abs(dx), floor, jnp.maximum(0.5 * tol, floor))
+        fx, dfx = _slope(f)(x)
         # One probe, on the side of x where the root lies (a probe on the other side moves the
-        # bracket only if f changes sign twice within delta). The two points are written out,
-        # not stacked: elementwise code that XLA fuses into a few kernels per iteration (a stack
-        # and a reduction over it do not fuse under vmap).
+        # bracket only if f changes sign twice within delta).
+        delta = _probe_delta(x, dx, tol)
         probe = jnp.clip(jnp.where(fx > 0, x + delta, x - delta), a, b)
-        a_new, b_new = a, b
-        for p, fp in ((x, fx), (probe, f(probe))):
-            finite = jnp.isfinite(fp)
-            a_new = jnp.where(finite & (fp > 0), jnp.maximum(a_new, p), a_new)
-            b_new = jnp.where(finite & (fp <= 0), jnp.minimum(b_new, p), b_new)
-        step = fx / jnp.where(dfx != 0, dfx, 1.0)
-        xn = x - step
-        # As in rtsafe: take Newton's step if it stays in the bracket and is at most half the
-        # step before last (converging); bisect otherwise. A converging step that lands within
-        # `tol` outside the bracket has found a root within rounding of the bracket's end (the
-        # probe put that end there): clamped to the end, the next probe closes the bracket,
-        # where a bisection of the whole bracket would take ~40 halvings.
-        converging = (dfx != 0) & jnp.isfinite(xn) & (2 * jnp.abs(step) <= jnp.abs(dx_old))
-        near = (xn > a_new - tol) & (xn < b_new + tol)
-        mid = 0.5 * (a_new + b_new)
-        xn = jnp.where(converging & near, jnp.clip(xn, a_new, b_new), mid)
+        a_new, b_new = _narrow(a, b, ((x, fx), (probe, f(probe))))
+        xn = _newton_or_bisect(x, fx, dfx, a_new, b_new, dx_old, tol)
         return a_new, b_new, xn, jnp.abs(xn - x), dx, i + 1
 
     a, b, *_, i = lax.while_loop(cond, body, (a, b, x0, b - a, 2 * (b - a), jnp.array(0)))
-    return a, b, i
+    if not polish:
+        return a, b, i
+    fb, dfb = _slope(f)(b)
+    cands = _polish_points(b, fb, dfb)
+    f_cands = lax.map(f, jnp.stack(cands))  # one evaluation of f in the program, run three times
+    return a, _polished(a, b, cands, [f_cands[j] for j in range(3)], dfb != 0), i
+
+
+# The phases of `_root_search_one_copy`'s loop, in order: what its next iteration evaluates.
+_ENDS, _ITERATE, _NEWTON_AT_B, _CANDIDATES, _DONE = range(5)
+
+
+def _phase(k: int) -> jax.Array:
+    return jnp.asarray(k, jnp.int32)
+
+
+def _root_search_one_copy(f, a, b, tol, max_iter: int, polish: bool):
+    """The search as one loop whose iterations each evaluate f and f' at three points (one
+    `jax.vmap` of the JVP: f appears once in the program), moving through the phases:
+
+    - `_ENDS`: a and b (the third point repeats b), for the Hermite start (`hermite_root`);
+    - `_ITERATE` (while b - a > tol, at most `max_iter` times): the iterate x and x +- delta, of
+      which the probe on the side of the root (by the sign of f(x)) narrows the bracket, as in
+      the written-out search (the other point is not used); then the next iterate;
+    - `_NEWTON_AT_B` (`polish`): b, for the polish's Newton point;
+    - `_CANDIDATES`: the polish's candidates.
+
+    Each iteration evaluates f at more points than the written-out search does there, and
+    every phase is an iteration: it runs slower, and compiles once where that one compiles f
+    five times."""
+    after_iterating = _NEWTON_AT_B if polish else _DONE
+
+    def points(c):
+        phase, a, b, x = c["phase"], c["a"], c["b"], c["x"]
+        delta = _probe_delta(x, c["dx"], tol)
+        by_phase = [(a, b, b), (x, jnp.clip(x + delta, a, b), jnp.clip(x - delta, a, b)), (b, b, b),
+                    tuple(c["cands"][j] for j in range(3))]
+        return [jnp.select([phase == k for k in range(4)], [pts[j] for pts in by_phase], b) for j in range(3)]
+
+    def body(c):
+        phase, a, b = c["phase"], c["a"], c["b"]
+        pts = points(c)
+        vals, slopes = jax.vmap(_slope(f))(jnp.stack(pts))
+        at_ends, iterating, at_b = phase == _ENDS, phase == _ITERATE, phase == _NEWTON_AT_B
+        start = hermite_root(a, b, vals[0], vals[1], slopes[0], slopes[1])
+        x, fx, dfx = pts[0], vals[0], slopes[0]
+        probe, f_probe = jnp.where(fx > 0, pts[1], pts[2]), jnp.where(fx > 0, vals[1], vals[2])
+        a_it, b_it = _narrow(a, b, ((x, fx), (probe, f_probe)))
+        xn = _newton_or_bisect(x, fx, dfx, a_it, b_it, c["dx_old"], tol)
+        i = c["i"] + iterating.astype(c["i"].dtype)
+        result = _polished(a, b, pts, [vals[j] for j in range(3)], c["slope_ok"])
+        a_new = jnp.where(iterating, a_it, a)
+        b_new = jnp.where(iterating, b_it, jnp.where(phase == _CANDIDATES, result, b))
+        more = (b_new - a_new > tol) & (i < max_iter)
+        nxt = jnp.where(iterating | at_ends, jnp.where(more, _phase(_ITERATE), _phase(after_iterating)),
+                        phase + 1)
+        return dict(
+            phase=nxt, a=a_new, b=b_new, i=i,
+            x=jnp.where(at_ends, start, jnp.where(iterating, xn, c["x"])),
+            dx=jnp.where(at_ends, b - a, jnp.where(iterating, jnp.abs(xn - x), c["dx"])),
+            dx_old=jnp.where(at_ends, 2 * (b - a), jnp.where(iterating, c["dx"], c["dx_old"])),
+            # at b (pts[0] = b): the polish's candidates from b's value and slope
+            cands=jnp.where(at_b, jnp.stack(_polish_points(b, fx, dfx)), c["cands"]),
+            slope_ok=jnp.where(at_b, dfx != 0, c["slope_ok"]),
+        )
+
+    zero = jnp.zeros_like(b)
+    init = dict(phase=_phase(_ENDS), a=a, b=b, x=zero, dx=zero, dx_old=zero, i=jnp.array(0),
+                cands=jnp.stack([zero] * 3), slope_ok=jnp.array(False))
+    c = lax.while_loop(lambda c: c["phase"] != _DONE, body, init)
+    return c["a"], c["b"], c["i"]
 
 
 def hermite_root(a, b, fa, fb, da, db, newton_steps: int = 4):
@@ -222,7 +343,8 @@ class BracketedNewton(AbstractEventLocator):
     W. H. Press et al., *Numerical Recipes*, 3rd ed., Sec. 9.4), each iterate followed by a
     probe towards the root so that the bracket closes once Newton converges, then one Newton
     step from the right end put a few ulps past the root
-    (`locate_root`). `minimum`: Newton on f' (f'' by nested forward-mode AD) inside the
+    (`locate_root`; for an f of more than `ONE_COPY_ABOVE` equations one loop that holds f
+    once, else written out). `minimum`: Newton on f' (f'' by nested forward-mode AD) inside the
     bracket of f' changing sign, stopping at the first f < 0 (`locate_minimum`; f'' appears once
     in its loop). `max_iter` and `max_iter_minimum` bound the iterations of each.
     """
