@@ -27,8 +27,9 @@ sg = lax.stop_gradient
 # ---------------------------------------------------------------------------- location
 # A root search whose function has more equations than this (`equation_count`) is written as
 # one loop that holds the function once (`_root_search_one_copy`); below, written out, with the
-# function at each place it is evaluated (`_root_search_written_out`), which runs faster: the
-# ball's guard has ~30 equations, a friction scene's watched values thousands.
+# function at each place it is evaluated (`_root_search_written_out`), which runs faster. The
+# watched values along a step's dense output: 65 equations for the ball, 284 for the thermostat,
+# about 900 for a block sliding with friction.
 ONE_COPY_ABOVE = 400
 
 
