@@ -494,12 +494,13 @@ def _terminal_domain(t, x, args):
 # scene's search compiles once, whatever the number of queries of a level.
 SEARCH_CHUNK = 8
 # The search runs a few times per build and its program is large (the contact equations, their
-# derivatives, the trust-region solve): XLA's backend optimisation would take most of its
-# compile time and save little of its run time. With those two options, XLA:CPU's
-# concurrency-optimised thunk schedule has run programs with results that depend on its threads
-# (jaxlib 0.10.2; docs: FAQ, "Compile time"): it is turned off with them.
-_SEARCH_COMPILE = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False,
-                   "xla_cpu_enable_concurrency_optimized_scheduler": False}
+# derivatives, the trust-region solve): XLA:CPU's own fusion emitters compile it in less time
+# than its MLIR ones. XLA's backend optimisation stays on: at level 0, jaxlib 0.10.2 has run
+# programs with results that depend on its threads, and with the concurrency-optimised schedule
+# also off it has computed a batched program wrong on one core (docs: FAQ, "Compile time"); a
+# scene's build runs in the user's process, on every core. With it a friction rod's build takes
+# about a tenth longer.
+_SEARCH_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 
 
 def run_search(constraints, queries, args_batch, samples, search: SearchOptions):
