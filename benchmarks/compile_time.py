@@ -79,9 +79,6 @@ def one() -> dict:
 def main():
     from _common import machine_info, run_per_setting, write_json
 
-    # A first process, discarded: it reads jaxlib's compiler from disk into the page cache,
-    # which would otherwise count in the first setting's compile time.
-    run_per_setting(__file__, {"warm-up": ""})
     rows = {name: {"flags": SETTINGS[name], **{int(k): v for k, v in r.items()}}
             for name, r in run_per_setting(__file__, SETTINGS).items()}
     with tempfile.TemporaryDirectory() as cache:

@@ -398,7 +398,7 @@ def compile_time(res: dict) -> list[str]:
     out = _page("compile_time", "Compile time", res, "compile_time.py",
                 "Problem A, `jax.jit(hj.simulate_batch)`, each setting in a fresh process (JAX reads `XLA_FLAGS` "
                 "once), best of 5 runs. *first result*: from the process's import of JAX to the first batch's "
-                "result (N = 1,000). A first process, not shown, reads jaxlib's compiler into the page cache. The LLVM -O0 setting (the test suite's) runs on one core, as the suite runs it "
+                "result (N = 1,000). The LLVM -O0 setting (the test suite's) runs on one core, as the suite runs it "
                 "(`os.sched_setaffinity` before JAX starts); the others on every core. Ratios against the default "
                 "setting of the same run. See the "
                 "[FAQ](../faq.md#compile-time) for what to do with these settings.")
