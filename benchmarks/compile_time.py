@@ -8,9 +8,9 @@ N = 1,000 and 10,000, with the largest final-state error against the closed form
 
 Settings: XLA's defaults; `--xla_cpu_use_fusion_emitters=false` (the older loop emitters);
 and that with `--xla_backend_optimization_level=0` (no LLVM optimisation): what the test suite
-uses, tests/conftest.py, and run as the suite runs it, in a process on one core (at level 0
-XLA:CPU has run programs with thread-dependent results; docs: FAQ). Then JAX's persistent compilation cache (`JAX_COMPILATION_CACHE_DIR`,
-a fresh temporary directory): the default setting in a first process, which compiles and
+uses, tests/conftest.py, run as the suite runs it, in a process on one core (at level 0 XLA:CPU
+has run programs with thread-dependent results; docs: FAQ). Then JAX's persistent compilation
+cache (`JAX_COMPILATION_CACHE_DIR`, a fresh temporary directory): the default setting in a first process, which compiles and
 writes the cache, and in a second one, which reads the compiled program from it (trace and
 lowering still run: the cache is keyed by the lowered program). The ratio columns are against
 the default setting of the same run. `first result` is the time from the process's first
