@@ -123,6 +123,8 @@ def evaluations_agree(system, args, xs, rtol=1e-9, jet_order: int = 3) -> int:
     compared."""
     from hybridjax._definition.kernels import Kernels
 
+    if jet_order not in (1, 3):
+        raise ValueError(f"evaluations_agree: jet_order is 1 or 3, got {jet_order}")
     mask = Kernels(system, args)
     own = Kernels(system, args)
     own.indexed = None

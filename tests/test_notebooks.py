@@ -1,4 +1,5 @@
-"""Every notebook runs top to bottom without an error (CI executes them)."""
+"""Every notebook runs top to bottom without an error: CI executes the first; the others, whose
+calls CI tests elsewhere, run with the costly cases (`-m costly`)."""
 
 from pathlib import Path
 
