@@ -14,12 +14,12 @@ Each iteration does, in order:
 2. `step_stage`, the hot path: one step of the solver with its step-size controller for every
    execution not waiting; the watched values at the step's samples and whether they cross or
    may dip (`needs_location`). A step without a candidate is accepted (and its save times
-   written); a step with one is held, and the execution waits for the event phase, which works
-   out where from the step it keeps. Only the yes-or-no is computed at every step: the first
-   crossing's and dip's indices and the tangents' intersection would be computed for every
-   execution at every step, and under `jax.vmap` XLA:CPU then keeps the samples as
-   (executions, samples, n) arrays read by many fusions, slower than the yes-or-no alone
-   (`benchmarks/guard_cost.py`).
+   written); a step with one is held, with its samples, and the execution waits for the event
+   phase, which works out where from what it keeps. Only the yes-or-no is computed at every
+   step: the first crossing's and dip's indices and the tangents' intersection would be
+   computed for every execution at every step, and under `jax.vmap` XLA:CPU then keeps the
+   samples as (executions, samples, n) arrays read by many fusions, slower than the yes-or-no
+   alone (`benchmarks/guard_cost.py`).
 3. `flush`: the events of the phase written into the max_epochs-long `EventRecord`.
 
 Alone, an execution enters the event phase at the iteration after it needs it, so its
@@ -137,7 +137,10 @@ class LoopState(eqx.Module):
     p_dense: Any  # the solver's dense-output coefficients of the step
     p_solver_state: Any
     p_made_jump: jax.Array
-    p_g_end: jax.Array  # (K + W,) the watched values at the step's end
+    # The watched values and their slopes at the step's samples (start, interior points, end)
+    # as the step stage computed them, stacked: the event phase reads its crossings and dips
+    # from them.
+    p_GD: jax.Array  # (2, interior_points + 2, K + W): values, slopes
     # A transition that fires at the start of an epoch (`start_stage`), waiting for the next
     # event phase, whose one jump (`resolve_stage`) applies it: the program has one copy of the
     # jump (reset, record, Zeno test) for the events of held steps and of epoch starts.
@@ -319,7 +322,7 @@ class Loop:
             p_dense=jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), dense),
             p_solver_state=solver_state,
             p_made_jump=jnp.array(False),
-            p_g_end=jnp.zeros((W,), dtype),
+            p_GD=jnp.zeros((2, self.interior_points + 2, W), dtype),
             f_fire=jnp.array(False),
             f_k=jnp.array(0, jnp.int32),
             f_simultaneous=jnp.array(False),
@@ -530,8 +533,10 @@ class Loop:
             d = sg(dense_info)
             ks = [d["k"][i] for i in range(d["k"].shape[0])]
             value, slope = dense_weights(self.solver.interpolation_cls, len(ks), thetas, self.dtype)
-            samples = [tuple(stage_combination(w, d["y0"], d["y1"], ks) for w in pair)
-                       for pair in zip(value, slope, strict=True)]
+            # The values at the ends are the step's own ends (below): only the slopes there.
+            samples = [(None if i in (0, len(thetas) - 1) else stage_combination(v, d["y0"], d["y1"], ks),
+                        stage_combination(w, d["y0"], d["y1"], ks))
+                       for i, (v, w) in enumerate(zip(value, slope, strict=True))]
         else:
             unit = self.solver.interpolation_cls(t0=jnp.zeros_like(one), t1=one, **sg(dense_info))
             samples = [jax.jvp(unit.evaluate, (jnp.asarray(th, self.dtype),), (one,)) for th in thetas]
@@ -543,11 +548,14 @@ class Loop:
             lambda tt, yy: kern.guards(mode, tt, yy, args_sg), (x, y), (one, yd)))(s_ext, ys_e, yd_e)
         return s_ext, G_e, D_e
 
-    def _save(self, saved, mask, mode, interp, t, t_next):
+    def _save(self, saved, mask, mode, make_interp, t, t_next):
         """Write the states at the save times selected by `mask` (inside [t, t_next]) from the
-        step's dense output `interp` into `saved`, the record's `(ys, saved_modes)`."""
+        step's dense output, `make_interp()` (called only where there are save times: the
+        program holds no interpolant that nothing reads), into `saved`, the record's
+        `(ys, saved_modes)`."""
         if not self.save_ts.shape[0]:
             return saved
+        interp = make_interp()
         rec_ys, rec_modes = saved
 
         def put_all(ys):
@@ -625,19 +633,18 @@ class Loop:
         accepted = self._accept(counted, t_next, y1, solver_state, made_jump, G[-1])
         pending = eqx.tree_at(
             lambda s: (s.pending, s.waited, s.p_t0, s.p_t1, s.p_y1, s.p_dense, s.p_solver_state,
-                       s.p_made_jump, s.p_g_end),
+                       s.p_made_jump, s.p_GD),
             counted,
             (jnp.array(True), jnp.array(0, jnp.int32), t, t_next, y1, dense_info, solver_state,
-             made_jump, G[-1]),
+             made_jump, jnp.stack([G_e, D_e])),
         )
         progressed = _select(keep, _select(held, pending, accepted), counted)
         # A non-finite step that cannot be shrunk any further stops the run at the step's
         # start, where everything was finite. A held step's stops are decided with its event.
         stops = step_stops(stuck, finite, h_new, sg(t), self.eps, progressed.num_steps, self.max_steps)
         new = _stop(_select(stuck, counted, progressed), *[(p & ~held, s) for p, s in stops])
-        interp = self.dense(t, t_next, dense_info)
         saved = self._save(saved, keep & active & ~held & saved_in_step(self.save_ts, sg(st.t), sg(t_next)),
-                           mode, interp, t, t_next)
+                           mode, lambda: self.dense(t, t_next, dense_info), t, t_next)
         return _select(active, new, st_all), saved
 
     def dense(self, t, t_next, dense_info):
@@ -652,15 +659,13 @@ class Loop:
         ks = [dense_info["k"][i] for i in range(dense_info["k"].shape[0])]
         return ChebyshevDense.from_stages(self.cheb, t, t_next, dense_info["y0"], dense_info["y1"], ks)
 
-    def detection(self, kern, mode, st: LoopState, args_sg, active) -> Detection:
+    def detection(self, st: LoopState, active) -> Detection:
         """The held step's crossings and dip candidates (`first_crossings`, `dip_candidates`,
-        `dip_filter`), from its samples taken again as `step_stage` took them (the same function
-        of the same values: the execution waits at the step's start). Zeros where not `active`."""
-        s_ext, G_e, D_e = self._samples(kern, mode, sg(st.p_t0), sg(st.p_t1), sg(st.y), sg(st.p_y1),
-                                        sg(st.p_dense), args_sg)
-        # The step's end values as the step stage kept them (and accepted steps carry on from):
-        # a crossing into the guard at the step's end is found here whenever it was there.
-        G = jnp.concatenate([G_e[1:-1], st.p_g_end[None]])
+        `dip_filter`), from the samples `step_stage` took and kept (`p_GD`): the values
+        that decided to hold the step decide where its events lie, and the event phase holds
+        no second copy of the sampling. Zeros where not `active`."""
+        s_ext = self._sample_times(st.p_t0, st.p_t1)
+        G, D_e = st.p_GD[0, 1:], st.p_GD[1]
         has, j = first_crossings(st.g_prev, G)
         # A guard can dip below zero and come back between two samples (near-grazing): where
         # the end tangents allow it, the minimum is searched for on the interpolant.
@@ -694,7 +699,7 @@ class Loop:
         def values_at(x):
             return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
 
-        det = self.detection(kern, mode, st, args_sg, active)
+        det = self.detection(st, active)
         br = event_brackets(values_at, det, s_ext, tol, self.locator)
         t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)
@@ -702,11 +707,11 @@ class Loop:
         k = kern.select(mode, k, t_ev, y_before, args)
         # saves up to the event time reported (t* moved onto the guard, `onto_the_guard`)
         t_end = jnp.where(any_event, sg(t_ev), sg(t_next))
-        saved = self._save(saved, active & saved_in_step(self.save_ts, sg(st.t), t_end), mode, interp, t,
-                           t_next)
+        saved = self._save(saved, active & saved_in_step(self.save_ts, sg(st.t), t_end), mode, lambda: interp,
+                           t, t_next)
 
         base = eqx.tree_at(lambda s: s.pending, st, jnp.array(False))
-        accepted = self._accept(base, t_next, st.p_y1, st.p_solver_state, st.p_made_jump, st.p_g_end)
+        accepted = self._accept(base, t_next, st.p_y1, st.p_solver_state, st.p_made_jump, st.p_GD[0, -1])
         # The domain left (`blocks`) before any guard: BLOCKED at the exit, state kept.
         blocked = eqx.tree_at(lambda s: (s.t, s.y), base, (t_ev, y_before))
         evented = _stop(blocked, (jnp.array(True), Status.BLOCKED))
