@@ -138,8 +138,10 @@ class LoopState(eqx.Module):
     p_solver_state: Any
     p_made_jump: jax.Array
     # The watched values and their slopes at the step's samples (start, interior points, end)
-    # as the step stage computed them, stacked: the event phase reads its crossings and dips
-    # from them.
+    # as the step stage computed them: the event phase reads its crossings and dips from them.
+    # One stacked array: carried as two, the program compiled wrong under the test suite's
+    # XLA flags (level 0, fusion emitters off; a vmapped batch of balls with save times
+    # located a bounce late), and right under every other setting tried.
     p_GD: jax.Array  # (2, interior_points + 2, K + W): values, slopes
     # A transition that fires at the start of an epoch (`start_stage`), waiting for the next
     # event phase, whose one jump (`resolve_stage`) applies it: the program has one copy of the
