@@ -7,8 +7,6 @@ both engines hand them the one of the call's `EventOptions`.
 """
 
 import abc
-import contextlib
-import contextvars
 import functools
 from collections.abc import Callable
 
@@ -33,35 +31,6 @@ sg = lax.stop_gradient
 # watched values along a step's dense output: 65 equations for the ball, 284 for the thermostat,
 # about 900 for a block sliding with friction.
 ONE_COPY_ABOVE = 400
-
-
-# Whether the searches evaluate f at their few fixed points (a bracket's two ends, the polish's
-# three candidates, the first event's two times) each in a copy of f of its own, or in one copy
-# under `lax.map`, run once per point (`points_written_out`).
-_POINTS_WRITTEN_OUT = contextvars.ContextVar("points_written_out", default=False)
-
-
-@contextlib.contextmanager
-def points_written_out(on: bool = True):
-    """Within (`on`): the searches traced here evaluate f at their fixed points in a copy of f
-    each, not in a `lax.map` over one copy (`at_points`). Same values, another program: for one
-    execution one copy compiles sooner and runs as fast; across a block of lanes (the batched
-    engine) each pass of a `lax.map` runs its kernels over the block once per point, and
-    written out the points take one pass."""
-    token = _POINTS_WRITTEN_OUT.set(on)
-    try:
-        yield
-    finally:
-        _POINTS_WRITTEN_OUT.reset(token)
-
-
-def at_points(f, points: list) -> list:
-    """`[f(p) for p in points]` (pytrees alike), written out within `points_written_out`, else
-    as one `lax.map` over one copy of f."""
-    if _POINTS_WRITTEN_OUT.get():
-        return [f(p) for p in points]
-    out = lax.map(f, jnp.stack(points))
-    return [jax.tree_util.tree_map(lambda o, j=j: o[j], out) for j in range(len(points))]
 
 
 def locate_root(f, a, b, tol, max_iter: int = 64, one_copy: bool | None = None):
@@ -161,13 +130,12 @@ def _polished(a, b, cands, f_cands, slope_ok):
 
 
 def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
-    """The search with f at each place it is evaluated: the ends' values and slopes (`at_points`:
-    one copy of f under `lax.map`, or one copy per point within `points_written_out`; a
-    `jax.vmap` over them makes a small matrix product of an interpolant a batched one, slower
-    for one execution and no faster for many), then a loop whose iterations evaluate the
-    iterate (value and slope) and its probe (value), then the polish's Newton point and its
-    candidates (`at_points`)."""
-    (fa, da), (fb, db) = at_points(_slope(f), [a, b])
+    """The search with f at each place it is evaluated: the ends' values and slopes (`lax.map`,
+    one point after the other from one copy of f: `jax.vmap` over them makes a small matrix
+    product of an interpolant a batched one, slower for one execution and no faster for many),
+    then a loop whose iterations evaluate the iterate (value and slope) and its probe (value),
+    then the polish's Newton point and its candidates."""
+    (fa, fb), (da, db) = lax.map(_slope(f), jnp.stack([a, b]))
     x0 = hermite_root(a, b, fa, fb, da, db)
 
     def cond(c):
@@ -190,7 +158,8 @@ def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
         return a, b, i
     fb, dfb = _slope(f)(b)
     cands = _polish_points(b, fb, dfb)
-    return a, _polished(a, b, cands, at_points(f, cands), dfb != 0), i
+    f_cands = lax.map(f, jnp.stack(cands))  # one evaluation of f in the program, run three times
+    return a, _polished(a, b, cands, [f_cands[j] for j in range(3)], dfb != 0), i
 
 
 # The phases of `_root_search_one_copy`'s loop, in order: what its next iteration evaluates.
@@ -511,7 +480,7 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
-        g_at, g_from = at_points(values_at, [t_at, a[first]])
+        g_at, g_from = lax.map(values_at, jnp.stack([t_at, a[first]]))
         cand = simultaneous_set(has, tk, t_min, tol, g_at, g_from)
         i, simultaneous = resolve_simultaneous(cand)
         tk = jnp.where(cand & ~has, t_min, tk)
