@@ -347,6 +347,10 @@ def test_the_root_search_holds_a_large_function_once():
     # value alone once: written out, the ends, the iterate and b (3 x 2) and the probe and the
     # candidates (2 x 1); as one loop, one value-and-slope evaluation.
     assert copies(large, False) == 8 and copies(large, True) == 2
+    # Within `across_lanes` (the batched engine) the candidates have a copy each (3 x 1, in place
+    # of the map's one): 10.
+    with R.locate.across_lanes():
+        assert copies(large, False) == 10 and copies(large, True) == 2
     with patch.object(R.locate, "ONE_COPY_ABOVE", n_small):
         assert copies(large, None) == copies(large, True)
     with patch.object(R.locate, "ONE_COPY_ABOVE", n_large):
@@ -417,6 +421,30 @@ def test_a_falling_balls_root_closes_in_one_iteration(one_copy):
     iterations, t = map(np.asarray, jax.jit(jax.vmap(one))(h0, v, a, b))
     assert iterations.max() == 1
     assert np.abs(t - land).max() <= 1e-12
+
+
+def test_searches_across_lanes_locate_the_same_roots_to_the_bit():
+    # The fixed points of the searches (the ends, the polish's candidates, the first event's
+    # simultaneity values) in one pass across lanes, or in one copy under `lax.map`: another
+    # program, the same arithmetic. Roots of cubics whose root r is known, and the simultaneity rule.
+    n = 10_000
+    rng = np.random.default_rng(3)
+    r, c = rng.uniform(0.2, 3.0, n), rng.uniform(-1.0, 1.0, n)
+    a, b = r - rng.uniform(0.01, 0.5, n), r + rng.uniform(0.01, 0.5, n)
+
+    def one(r, c, a, b):
+        def f(x):
+            return (r - x) * (1.0 + 0.3 * c * (x - r)) * (2.0 + jnp.sin(x))
+
+        return R.locate_root(f, a, b, 1e-12 * (b - a), one_copy=False)
+
+    mapped = np.asarray(jax.jit(jax.vmap(one))(r, c, a, b))
+    with R.locate.across_lanes():
+        written = np.asarray(jax.jit(jax.vmap(one))(r, c, a, b))
+        ev = _first_event_of(1e-14, 0.0, 0.5)
+    np.testing.assert_array_equal(written, mapped)
+    assert np.all((mapped - r <= 1e-12 * (b - a)) & (mapped - r >= -4e-16 * r))
+    assert int(ev.index) == 0 and bool(ev.simultaneous) and 0.0 <= float(ev.t_star) - 1.0 <= 1e-12
 
 
 def test_locate_minimum():

@@ -56,7 +56,7 @@ from .._core.status import Status
 from .._definition.kernels import Kernels, mask_inputs
 from .._rules.detect import dip_filter, dip_interval
 from .._rules.jump import blocks, jump_outcome, push_recent, zeno_completion
-from .._rules.locate import event_brackets, event_point, first_event
+from .._rules.locate import across_lanes, event_brackets, event_point, first_event
 from .._rules.options import SolveOptions
 from .._rules.records import Detection, EpochStart
 from .._rules.save import saved_in_step, within_step
@@ -656,9 +656,12 @@ class BatchedLoop:
         def values_at(x):
             return kern.slot_guards(mode, x, interp_sg.evaluate(x), a_sg)
 
-        br = event_brackets(values_at, det, s_ext, tol, self.locator)
+        # The searches' fixed points in one pass over the block: a `lax.map` over them would run
+        # the kernels over the block once per point (`across_lanes`).
+        with across_lanes():
+            br = event_brackets(values_at, det, s_ext, tol, self.locator)
+            t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)
-        t_star, slot, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         k = jnp.where(any_event, jnp.asarray(kern.slot_watch)[mode, slot], 0).astype(jnp.int32)
         ks_e, y_e, y1_e, t_e, tn_e, a_e = mask_inputs(any_event, (ks, y, y1, t, t_next, args))
         interp = ChebyshevDense.from_stages(self.cheb, t_e, tn_e, y_e, y1_e, ks_e)

@@ -661,12 +661,12 @@ class Loop:
         ks = [dense_info["k"][i] for i in range(dense_info["k"].shape[0])]
         return ChebyshevDense.from_stages(self.cheb, t, t_next, dense_info["y0"], dense_info["y1"], ks)
 
-    def detection(self, st: LoopState, active) -> Detection:
+    def detection(self, st: LoopState, active, s_ext) -> Detection:
         """The held step's crossings and dip candidates (`first_crossings`, `dip_candidates`,
-        `dip_filter`), from the samples `step_stage` took and kept (`p_GD`): the values
-        that decided to hold the step decide where its events lie, and the event phase holds
-        no second copy of the sampling. Zeros where not `active`."""
-        s_ext = self._sample_times(st.p_t0, st.p_t1)
+        `dip_filter`), from the samples `step_stage` took and kept (`p_GD`) at the held step's
+        sample times `s_ext`: the values that decided to hold the step decide where its events
+        lie, and the event phase holds no second copy of the sampling. Zeros where not
+        `active`."""
         G, D_e = st.p_GD[0, 1:], st.p_GD[1]
         has, j = first_crossings(st.g_prev, G)
         # A guard can dip below zero and come back between two samples (near-grazing): where
@@ -701,7 +701,7 @@ class Loop:
         def values_at(x):
             return kern.guards(mode, x, interp_sg.evaluate(x), args_sg)
 
-        det = self.detection(st, active)
+        det = self.detection(st, active, s_ext)
         br = event_brackets(values_at, det, s_ext, tol, self.locator)
         t_star, k, simultaneous = first_event(values_at, br, tol, sg(t_next), self.locator)
         any_event = jnp.any(br.has)

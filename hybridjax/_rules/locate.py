@@ -7,6 +7,8 @@ both engines hand them the one of the call's `EventOptions`.
 """
 
 import abc
+import contextlib
+import contextvars
 import functools
 from collections.abc import Callable
 
@@ -31,6 +33,36 @@ sg = lax.stop_gradient
 # watched values along a step's dense output: 65 equations for the ball, 284 for the thermostat,
 # about 900 for a block sliding with friction.
 ONE_COPY_ABOVE = 400
+
+
+# Whether the searches traced now run across a block of lanes (`across_lanes`), where each pass
+# of a `lax.map` over their few fixed points runs the kernels over the whole block once per point.
+_ACROSS_LANES = contextvars.ContextVar("across_lanes", default=False)
+
+
+@contextlib.contextmanager
+def across_lanes(on: bool = True):
+    """Within (`on`): the searches traced here evaluate f at their few fixed points (a bracket's
+    two ends, the polish's three candidates, the first event's two times) in one pass rather
+    than in a `lax.map` run once per point (`at_points`). Same values, another program: for one
+    execution the map's one copy of f compiles sooner and runs as fast; across a block of lanes
+    (the batched engine) each of the map's passes runs the kernels over the whole block."""
+    token = _ACROSS_LANES.set(on)
+    try:
+        yield
+    finally:
+        _ACROSS_LANES.reset(token)
+
+
+def at_points(f, points: list, written_out: bool = True) -> list:
+    """`[f(p) for p in points]` (pytrees alike). Per execution: one copy of f under `lax.map`.
+    Within `across_lanes`: a copy of f per point (`written_out`), or one copy under `jax.vmap`
+    over the points."""
+    if _ACROSS_LANES.get() and written_out:
+        return [f(p) for p in points]
+    xs = jnp.stack(points)
+    out = jax.vmap(f)(xs) if _ACROSS_LANES.get() else lax.map(f, xs)
+    return [jax.tree_util.tree_map(lambda o, j=j: o[j], out) for j in range(len(points))]
 
 
 def locate_root(f, a, b, tol, max_iter: int = 64, one_copy: bool | None = None):
@@ -130,12 +162,16 @@ def _polished(a, b, cands, f_cands, slope_ok):
 
 
 def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
-    """The search with f at each place it is evaluated: the ends' values and slopes (`lax.map`,
-    one point after the other from one copy of f: `jax.vmap` over them makes a small matrix
-    product of an interpolant a batched one, slower for one execution and no faster for many),
-    then a loop whose iterations evaluate the iterate (value and slope) and its probe (value),
-    then the polish's Newton point and its candidates."""
-    (fa, fb), (da, db) = lax.map(_slope(f), jnp.stack([a, b]))
+    """The search with f at each place it is evaluated: the ends' values and slopes (`at_points`:
+    one copy of f under `lax.map`, or under `jax.vmap` within `across_lanes`; for one execution
+    a `jax.vmap` over them makes a small matrix product of an interpolant a batched one,
+    slower), then a loop whose iterations evaluate the
+    iterate (value and slope) and its probe (value), then the polish's Newton point and its
+    candidates (`at_points`)."""
+    # The ends' values and slopes under one `vmap` across lanes: written out, the two copies of
+    # the slope's forward-mode program make XLA's legacy CPU emitters
+    # (`--xla_cpu_use_fusion_emitters=false`) take over 6 GB compiling the thermostat.
+    (fa, da), (fb, db) = at_points(_slope(f), [a, b], written_out=False)
     x0 = hermite_root(a, b, fa, fb, da, db)
 
     def cond(c):
@@ -158,8 +194,7 @@ def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
         return a, b, i
     fb, dfb = _slope(f)(b)
     cands = _polish_points(b, fb, dfb)
-    f_cands = lax.map(f, jnp.stack(cands))  # one evaluation of f in the program, run three times
-    return a, _polished(a, b, cands, [f_cands[j] for j in range(3)], dfb != 0), i
+    return a, _polished(a, b, cands, at_points(f, cands), dfb != 0), i
 
 
 # The phases of `_root_search_one_copy`'s loop, in order: what its next iteration evaluates.
@@ -480,7 +515,7 @@ def first_event(values_at: Callable, br: Brackets, tol, t_end,
         first = jnp.argmin(tk)
         t_min = tk[first]
         t_at = jnp.where(any_event, t_min, b[first])
-        g_at, g_from = lax.map(values_at, jnp.stack([t_at, a[first]]))
+        g_at, g_from = at_points(values_at, [t_at, a[first]])
         cand = simultaneous_set(has, tk, t_min, tol, g_at, g_from)
         i, simultaneous = resolve_simultaneous(cand)
         tk = jnp.where(cand & ~has, t_min, tk)
