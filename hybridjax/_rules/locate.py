@@ -165,9 +165,8 @@ def _root_search_written_out(f, a, b, tol, max_iter: int, polish: bool):
     """The search with f at each place it is evaluated: the ends' values and slopes (`at_points`:
     one copy of f under `lax.map`, or under `jax.vmap` within `across_lanes`; for one execution
     a `jax.vmap` over them makes a small matrix product of an interpolant a batched one,
-    slower), then a loop whose iterations evaluate the
-    iterate (value and slope) and its probe (value), then the polish's Newton point and its
-    candidates (`at_points`)."""
+    slower), then a loop whose iterations evaluate the iterate (value and slope) and its probe
+    (value), then the polish's Newton point and its candidates (`at_points`)."""
     # The ends' values and slopes under one `vmap` across lanes: written out, the two copies of
     # the slope's forward-mode program make XLA's legacy CPU emitters
     # (`--xla_cpu_use_fusion_emitters=false`) take over 6 GB compiling the thermostat.
