@@ -440,9 +440,9 @@ def test_searches_across_lanes_locate_the_same_roots_to_the_bit():
 
     mapped = np.asarray(jax.jit(jax.vmap(one))(r, c, a, b))
     with R.locate.across_lanes():
-        written = np.asarray(jax.jit(jax.vmap(one))(r, c, a, b))
+        across = np.asarray(jax.jit(jax.vmap(one))(r, c, a, b))
         ev = _first_event_of(1e-14, 0.0, 0.5)
-    np.testing.assert_array_equal(written, mapped)
+    np.testing.assert_array_equal(across, mapped)
     assert np.all((mapped - r <= 1e-12 * (b - a)) & (mapped - r >= -4e-16 * r))
     assert int(ev.index) == 0 and bool(ev.simultaneous) and 0.0 <= float(ev.t_star) - 1.0 <= 1e-12
 

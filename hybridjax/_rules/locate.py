@@ -41,13 +41,13 @@ _ACROSS_LANES = contextvars.ContextVar("across_lanes", default=False)
 
 
 @contextlib.contextmanager
-def across_lanes(on: bool = True):
-    """Within (`on`): the searches traced here evaluate f at their few fixed points (a bracket's
+def across_lanes():
+    """Within: the searches traced here evaluate f at their few fixed points (a bracket's
     two ends, the polish's three candidates, the first event's two times) in one pass rather
     than in a `lax.map` run once per point (`at_points`). Same values, another program: for one
     execution the map's one copy of f compiles sooner and runs as fast; across a block of lanes
     (the batched engine) each of the map's passes runs the kernels over the whole block."""
-    token = _ACROSS_LANES.set(on)
+    token = _ACROSS_LANES.set(True)
     try:
         yield
     finally:
