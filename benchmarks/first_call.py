@@ -22,9 +22,9 @@ and records the size of the program (the lowered StableHLO text: bytes, lines, o
 optimised HLO that XLA compiled: instructions). Then the same with JAX's persistent compilation
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
 (tracing and lowering still run: the cache is keyed by the lowered program). Then the
-program's own XLA options, `jax.jit(..., compiler_options=...)`, the ones a direct call of
-`hj.simulate` uses (`hybridjax._solve.eager.FAST_COMPILE_CPU`: XLA:CPU's own fusion
-emitters in place of its MLIR ones), on hybridjax and on the lock-step loop; and the call made
+program's own XLA options, `jax.jit(..., compiler_options=...)`, the one of a direct call of
+`hj.simulate` that shortens its compilation (`hybridjax._solve.eager.FAST_COMPILE_CPU`: XLA:CPU's
+own fusion emitters in place of its MLIR ones), on hybridjax and on the lock-step loop; and the call made
 directly, outside `jax.jit` (`hj.simulate(...)`, under `jax.grad` or `jax.jvp` for the
 derivatives), as in a notebook: compiled by hybridjax (`hybridjax._solve.eager`), its first
 result timed as a whole. The direct call and the lock-step loop, the comparison a user makes, run
@@ -57,8 +57,9 @@ import tempfile  # noqa: E402
 SYSTEMS = ("ball", "thermostat", "wall", "lif")
 CALLS = ("forward", "reverse", "jvp")
 PROCESSES = ("no cache", "cache: first process", "cache: later process")
-# A program's own XLA options (`jax.jit(..., compiler_options=...)`), those of a direct call
-# (`FAST_COMPILE_CPU`): kernels compiled by XLA:CPU's own fusion emitters, not its MLIR ones.
+# A program's own XLA options (`jax.jit(..., compiler_options=...)`), the one of a direct call that
+# shortens its compilation (`FAST_COMPILE_CPU`): kernels compiled by XLA:CPU's own fusion
+# emitters, not its MLIR ones.
 FAST = "fusion emitters off"
 EAGER = "direct call"
 # The same call on the plain diffrax loop (`_baselines.diffrax_epoch_scan`), in a fresh process

@@ -13,9 +13,10 @@ the ratios between them:
 - the closed form, jitted (`work_precision.ball_closed_form_jax`): no integration at all;
 - hybridjax (`jax.jit(hj.simulate_batch)`, `devices=1` and every device), and
   `jax.jit(jax.vmap(hj.simulate))` on one core (what `simulate_batch` runs on a GPU);
-- on one core, `hj.simulate_batch` called directly (outside `jax.jit`: the program the call
-  compiles itself, with `hybridjax._solve.eager.WIDE_VECTORS_CPU`), and the lock-step loop
-  compiled with the same XLA options (`jax.jit(..., compiler_options=...)`).
+- on one core, `hj.simulate_batch` and `jax.vmap(hj.simulate)` (`engine="vmap"`) called
+  directly (outside `jax.jit`: the program the call compiles itself, with
+  `hybridjax._solve.eager.BATCH_CPU`), and the lock-step loop compiled with the same XLA options
+  (`jax.jit(..., compiler_options=...)`).
 
 Tsit5, rtol = atol = 1e-9, float64, the ball of problem A (h0 ~ U(0.5, 1.5), v0 ~ U(-1, 1),
 e = 0.8, T = 2.5), N executions; each rate is the best of `--rounds` runs, errors against the
@@ -61,7 +62,7 @@ from work_precision import (  # noqa: E402  (also: one device per core, x64)
 )
 
 import hybridjax as hj  # noqa: E402
-from hybridjax._solve.eager import WIDE_VECTORS_CPU  # noqa: E402
+from hybridjax._solve.eager import BATCH_CPU  # noqa: E402
 
 G, E = 9.8, 0.8
 
@@ -95,16 +96,19 @@ def lockstep(prob):
                             max_steps=20_000, controller=diffrax.PIDController(rtol=1e-9, atol=1e-9))
 
 
-def direct_call(prob, devices):
-    """`hj.simulate_batch` called directly (Tsit5, 1e-9, as `runner`), as `fn(x0, mode0)`."""
+def direct_call(prob, devices, engine=None):
+    """`hj.simulate_batch` called directly (Tsit5, 1e-9, as `runner`), as `fn(x0, mode0)`; with
+    `engine="vmap"`, `jax.vmap(hj.simulate)` called directly."""
     kw = dict(solver=diffrax.Tsit5(), stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-9),
               max_epochs=prob.max_epochs, max_steps=20_000, event_tol=1e-12)
+    if engine is not None:
+        kw["engine"] = engine
     return lambda x, m: hj.simulate_batch(prob.system, x, m, 0.0, prob.t1, prob.args, devices=devices, **kw)
 
 
-def wide(fn):
-    """`jax.jit(fn)` compiled with the XLA options of a direct batch call (`WIDE_VECTORS_CPU`)."""
-    return jax.jit(fn, compiler_options=WIDE_VECTORS_CPU)
+def with_direct_options(fn):
+    """`jax.jit(fn)` compiled with the XLA options of a direct batch call (`BATCH_CPU`)."""
+    return jax.jit(fn, compiler_options=BATCH_CPU)
 
 
 def read_solution(r):
@@ -130,11 +134,12 @@ def ways(prob):
         out[f"hybridjax, {cores}"] = (lambda x, m, fn=fn: fn(x, m, 1e-9, 1e-12), read_solution)
         if cores == "one core":
             out["hybridjax, direct call, one core"] = (direct_call(prob, 1), read_solution)
-            out["diffrax lock-step loop, wide vectors, one core"] = (wide(lambda x, m: lock(x, m, prob.args)),
-                                                                     lambda r: (r[1], r[2]))
-            # the path simulate_batch takes on a GPU
+            out["diffrax lock-step loop, direct call's options, one core"] = (
+                with_direct_options(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2]))
+            # the path simulate_batch takes on a GPU, jitted and called directly
             fn = with_constants(lambda x, m, fn=runner(prob, "Tsit5", engine="vmap"): fn(x, m, 1e-9, 1e-12))
             out["hybridjax vmap(simulate), one core"] = (fn, read_solution)
+            out["hybridjax vmap(simulate), direct call, one core"] = (direct_call(prob, 1, "vmap"), read_solution)
     return out
 
 
@@ -144,10 +149,12 @@ def one_core_ways(prob):
     batched, vmapped = runner(prob, "Tsit5", devices=1), runner(prob, "Tsit5", engine="vmap")
     return {
         "diffrax lock-step loop": (with_constants(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2])),
-        "diffrax lock-step loop, wide vectors": (wide(lambda x, m: lock(x, m, prob.args)), lambda r: (r[1], r[2])),
+        "diffrax lock-step loop, direct call's options": (with_direct_options(lambda x, m: lock(x, m, prob.args)),
+                                                          lambda r: (r[1], r[2])),
         "hybridjax": (lambda x, m: batched(x, m, 1e-9, 1e-12), read_solution),
         "hybridjax, direct call": (direct_call(prob, 1), read_solution),
         "hybridjax vmap(simulate)": (with_constants(lambda x, m: vmapped(x, m, 1e-9, 1e-12)), read_solution),
+        "hybridjax vmap(simulate), direct call": (direct_call(prob, 1, "vmap"), read_solution),
     }
 
 
@@ -244,7 +251,7 @@ def main():
     other = others(opts.n_other, opts.rounds)
     single = run_pinned(opts)
     path = write_json("per_core", dict(machine=machine_info(), n=opts.n, rounds=opts.rounds, rows=rows,
-                                       others=other, pinned=single))
+                                       others=other, pinned=single, direct_options=BATCH_CPU))
     print(f"wrote {path}")
 
 

@@ -225,8 +225,9 @@ def per_core(res: dict) -> list[str]:
                 "split over every core (one JAX CPU device per core: hybridjax through its `devices` option, the "
                 "others by hand, an equal part of the executions on each device), and a fifth, "
                 "`jax.vmap(hj.simulate)` (the way `simulate_batch` runs on a GPU), on one core, with `simulate_batch` "
-                "called directly (outside `jax.jit`) and the lock-step loop compiled with the XLA options such a "
-                "call uses (*wide vectors*); in one process, best of "
+                "and `jax.vmap(hj.simulate)` also called directly (outside `jax.jit`: *direct call*) and the "
+                "lock-step loop compiled with the XLA options such a call uses (*direct call's options*); in one "
+                "process, best of "
                 f"{res['rounds']} alternating runs. Every way is compiled with the problem's parameters as "
                 "constants; errors are against the closed form for every execution. *One core* is one JAX CPU "
                 "device: XLA may run a device's work on its pool of threads, one per core of the process (see "
@@ -241,14 +242,18 @@ def per_core(res: dict) -> list[str]:
                    "x the same way on one core", "max error", "wrong event counts"], body)
     if "hybridjax, direct call, one core" in rows:
         d, lk = rows["hybridjax, direct call, one core"], rows["diffrax lock-step loop, one core"]
-        lw = rows["diffrax lock-step loop, wide vectors, one core"]
-        out.append(f"- On one core, `simulate_batch` called directly (the program it compiles itself, XLA:CPU's loops "
-                   f"vectorized 512 bits wide) runs at {d['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step loop, "
-                   f"and at {d['exec_per_s'] / lw['exec_per_s']:.2f}x the lock-step loop compiled with the same XLA "
-                   "options (`compiler_options={\"xla_cpu_prefer_vector_width\": 512}`; FAQ, Compile time).")
+        lw = rows["diffrax lock-step loop, direct call's options, one core"]
+        opts = res.get("direct_options", {})
+        out.append(f"- On one core, `simulate_batch` called directly (the program it compiles itself, with "
+                   f"`compiler_options={opts}`) runs at {d['exec_per_s'] / lk['exec_per_s']:.2f}x the lock-step "
+                   f"loop, and at {d['exec_per_s'] / lw['exec_per_s']:.2f}x the lock-step loop compiled with the same "
+                   "XLA options (FAQ, Compile time).")
     if "hybridjax vmap(simulate), one core" in rows:
         v = rows["hybridjax vmap(simulate), one core"]
-        out.append(f"- On one core, `jax.vmap(simulate)` runs at {v['vs_lockstep_one_core']:.2f}x the lock-step loop.")
+        direct = rows.get("hybridjax vmap(simulate), direct call, one core")
+        called = f", and at {direct['vs_lockstep_one_core']:.2f}x called directly" if direct else ""
+        out.append(f"- On one core, `jax.vmap(simulate)` runs at {v['vs_lockstep_one_core']:.2f}x the lock-step loop "
+                   f"under `jax.jit`{called}.")
     for cores in ("one core", "every core"):
         h, b = rows[f"hybridjax, {cores}"], rows[f"bare hand-written loop, {cores}"]
         lk = rows[f"diffrax lock-step loop, {cores}"]

@@ -177,18 +177,18 @@ def test_forward_mode_through_a_jit_of_the_default_adjoint_names_the_fix():
 
 def test_the_compiler_options_of_a_direct_call_follow_its_executions_derivatives_and_backend():
     # On the CPU: XLA:CPU's own fusion emitters for one execution, undifferentiated, in forward
-    # mode, or in reverse mode alone; wide vectors for a batch without reverse mode; XLA's
-    # defaults for a batch under reverse mode, a reverse-mode derivative inside another
-    # derivative, or another backend.
-    from hybridjax._solve.eager import FAST_COMPILE_CPU, WIDE_VECTORS_CPU, eager_compiler_options
+    # mode, or in reverse mode alone; wide vectors for a batch without reverse mode; both with
+    # copy insertion's region analysis; XLA's defaults for a batch under reverse mode, a
+    # reverse-mode derivative inside another derivative, or another backend.
+    from hybridjax._solve.eager import eager_compiler_options
 
-    assert FAST_COMPILE_CPU == {"xla_cpu_use_fusion_emitters": False}
-    assert WIDE_VECTORS_CPU == {"xla_cpu_prefer_vector_width": 512}
+    one_execution = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_copy_insertion_use_region_analysis": True}
+    batch = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_copy_insertion_use_region_analysis": True}
     for modes in (frozenset(), frozenset({"forward"})):
-        assert eager_compiler_options(True, modes, False, "cpu") == FAST_COMPILE_CPU
+        assert eager_compiler_options(True, modes, False, "cpu") == one_execution
         for one, batched in [(False, False), (True, True), (False, True)]:
-            assert eager_compiler_options(one, modes, batched, "cpu") == WIDE_VECTORS_CPU
-    assert eager_compiler_options(True, frozenset({"reverse"}), False, "cpu", reverse_only=True) == FAST_COMPILE_CPU
+            assert eager_compiler_options(one, modes, batched, "cpu") == batch
+    assert eager_compiler_options(True, frozenset({"reverse"}), False, "cpu", reverse_only=True) == one_execution
     for one, modes, batched, backend in [(False, frozenset({"reverse"}), False, "cpu"),
                                          (True, frozenset({"reverse"}), True, "cpu"),
                                          (True, frozenset({"reverse"}), False, "cpu"),

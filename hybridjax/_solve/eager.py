@@ -26,12 +26,14 @@ differentiated call, and the per-execution loop's reverse mode what it keeps for
 
 A call that runs one execution (`simulate`, not under `jax.vmap`), on the CPU, is compiled
 with XLA:CPU's own fusion emitters instead of its MLIR fusion emitters
-(`eager_compiler_options`): most of such a program's compile time is spent compiling its
-kernels one by one, which these emitters do in one half to two thirds of the time, and a
-single execution runs as fast (its reverse-mode derivative up to a tenth slower, against the
-seconds its first call saves). A batch keeps the MLIR emitters, which run it faster, and lets
-LLVM vectorize its loops over the executions 512 bits wide (`WIDE_VECTORS_CPU`), except under
-reverse mode, whose programs run slower so. JAX accepts
+(`eager_compiler_options`, `ONE_EXECUTION_CPU`): most of such a program's compile time is
+spent compiling its kernels one by one, which these emitters do in one half to two thirds of
+the time, and a single execution runs as fast (its reverse-mode derivative up to a tenth
+slower, against the seconds its first call saves). A batch keeps the MLIR emitters, which run
+it faster, and lets LLVM vectorize its loops over the executions 512 bits wide
+(`BATCH_CPU`), except under reverse mode, whose programs run slower so. Both let XLA's copy
+insertion analyse the loops' and conditionals' regions (`FEWER_COPIES_CPU`), which keeps fewer
+copies of the arrays they carry. JAX accepts
 a program's own options only on a program it compiles as called, not on one it records while
 differentiating, so under one reverse-mode derivative (`jax.grad`, `jax.vjp`, `jax.jacrev`)
 the call is a custom VJP whose forward pass (the solve with `jax.vjp`'s residuals) and
@@ -67,7 +69,10 @@ from .._core.transforms import (
     naming_the_forward_mode_fix,
     reverse_only_at_call,
 )
+from .._core.xla_options import BATCH_CPU as BATCH_CPU
 from .._core.xla_options import FAST_COMPILE_CPU as FAST_COMPILE_CPU
+from .._core.xla_options import FEWER_COPIES_CPU as FEWER_COPIES_CPU
+from .._core.xla_options import ONE_EXECUTION_CPU as ONE_EXECUTION_CPU
 from .._core.xla_options import WIDE_VECTORS_CPU as WIDE_VECTORS_CPU
 from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
 from .prepare import SHORTHANDS, solve_options
@@ -157,20 +162,21 @@ def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool,
     """The XLA compiler options of the program compiled for a call made outside `jax.jit`, on the
     `"cpu"` backend (elsewhere none: XLA's defaults):
 
-    - `FAST_COMPILE_CPU` for a call that runs one execution (`one_execution`, and not `batched`
-      under `jax.vmap`) with no reverse-mode derivative in `modes` or with reverse mode alone
-      (`reverse_only`: one linearize trace at the call). One execution's programs compile in one
-      half to two thirds of the XLA time with them (docs: First call); forward and forward-mode
-      programs run as fast, reverse-mode ones up to a tenth slower.
-    - `WIDE_VECTORS_CPU` for a batch (`simulate_batch`, or a call under `jax.vmap`) without a
-      reverse-mode derivative, which runs faster with them.
+    - `ONE_EXECUTION_CPU` (`FAST_COMPILE_CPU` and `FEWER_COPIES_CPU`) for a call that runs one
+      execution (`one_execution`, and not `batched` under `jax.vmap`) with no reverse-mode
+      derivative in `modes` or with reverse mode alone (`reverse_only`: one linearize trace at
+      the call). One execution's programs compile in one half to two thirds of the XLA time with
+      them (docs: First call); forward and forward-mode programs run as fast, reverse-mode ones
+      up to a tenth slower.
+    - `BATCH_CPU` (`WIDE_VECTORS_CPU` and `FEWER_COPIES_CPU`) for a batch (`simulate_batch`, or
+      a call under `jax.vmap`) without a reverse-mode derivative, which runs faster with them.
     - None otherwise (a reverse-mode derivative of a batch, or one nested in another derivative).
     """
     if backend != "cpu":
         return {}
     if one_execution and not batched:
-        return dict(FAST_COMPILE_CPU) if "reverse" not in modes or reverse_only else {}
-    return dict(WIDE_VECTORS_CPU) if "reverse" not in modes else {}
+        return dict(ONE_EXECUTION_CPU) if "reverse" not in modes or reverse_only else {}
+    return dict(BATCH_CPU) if "reverse" not in modes else {}
 
 
 def _reverse_with_options(traced: Callable, primal: Callable, options: dict) -> Callable:
@@ -266,7 +272,7 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                 compiled[key] = eqx.filter_jit(traced, compiler_options=options)
             return compiled[key]
 
-        reverse_compiled = _reverse_with_options(traced, program(FAST_COMPILE_CPU), FAST_COMPILE_CPU)
+        reverse_compiled = _reverse_with_options(traced, program(ONE_EXECUTION_CPU), ONE_EXECUTION_CPU)
 
         @functools.wraps(fn)
         def call(*args, **kwargs):
@@ -302,7 +308,7 @@ def compiled_when_eager(check_time_span: Callable, *, one_execution: bool = Fals
                 # of the reverse-mode loop (under jax.hessian) fails: the error names the fix.
                 with naming_the_forward_mode_fix():
                     if options:
-                        # Reverse mode with options: one execution's (`FAST_COMPILE_CPU`) alone.
+                        # Reverse mode with options: one execution's (`ONE_EXECUTION_CPU`) alone.
                         with_options = reverse_compiled if "reverse" in modes else program(options)
                         return with_default_options_if_refused(options, with_options, program({}),
                                                                call_args, call_kwargs, context)

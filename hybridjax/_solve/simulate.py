@@ -66,7 +66,9 @@ def simulate(
     CPU, such a call without `jax.vmap` or reverse mode compiles with XLA:CPU's own fusion
     emitters (`compiler_options={"xla_cpu_use_fusion_emitters": False}`), in about half the XLA
     time, running as fast; under `jax.vmap`, without reverse mode, with wider vectors
-    (`{"xla_cpu_prefer_vector_width": 512}`; faster for a batch; FAQ, "Compile time"). Inside
+    (`{"xla_cpu_prefer_vector_width": 512}`; faster for a batch); either with fewer copies of
+    the arrays its loops carry (`{"xla_cpu_copy_insertion_use_region_analysis": True}`; FAQ,
+    "Compile time"). Inside
     `jax.jit` the call is traced with its
     caller, as any JAX function, and compiled with the caller's options.
 
