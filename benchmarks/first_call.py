@@ -23,9 +23,9 @@ optimised HLO that XLA compiled: instructions). Then the same with JAX's persist
 cache: a first process that fills a fresh temporary cache directory, and a second that reads it
 (tracing and lowering still run: the cache is keyed by the lowered program). Then the
 program's own XLA options, `jax.jit(..., compiler_options=...)`, the one of a direct call of
-`hj.simulate` that shortens its compilation (`hybridjax._solve.eager.FAST_COMPILE_CPU`: XLA:CPU's
-own fusion emitters in place of its MLIR ones), on hybridjax and on the lock-step loop; and the call made
-directly, outside `jax.jit` (`hj.simulate(...)`, under `jax.grad` or `jax.jvp` for the
+`hj.simulate` that shortens its compilation (`hybridjax._solve.eager.FAST_COMPILE_CPU`:
+XLA:CPU's own fusion emitters in place of its MLIR ones), on hybridjax and on the lock-step
+loop; and the call made directly, outside `jax.jit` (`hj.simulate(...)`, under `jax.grad` or `jax.jvp` for the
 derivatives), as in a notebook: compiled by hybridjax (`hybridjax._solve.eager`), its first
 result timed as a whole. The direct call and the lock-step loop, the comparison a user makes, run
 in `--pairs` (default 5) alternating pairs of fresh processes; each of their rows is the pair's best

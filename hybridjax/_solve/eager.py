@@ -71,9 +71,7 @@ from .._core.transforms import (
 )
 from .._core.xla_options import BATCH_CPU as BATCH_CPU
 from .._core.xla_options import FAST_COMPILE_CPU as FAST_COMPILE_CPU
-from .._core.xla_options import FEWER_COPIES_CPU as FEWER_COPIES_CPU
 from .._core.xla_options import ONE_EXECUTION_CPU as ONE_EXECUTION_CPU
-from .._core.xla_options import WIDE_VECTORS_CPU as WIDE_VECTORS_CPU
 from .._definition.validation import _TIME_SPAN_CHECKED, _Ticket
 from .prepare import SHORTHANDS, solve_options
 
@@ -160,7 +158,8 @@ def _options_key(options: dict) -> tuple:
 def eager_compiler_options(one_execution: bool, modes: frozenset, batched: bool, backend: str,
                            reverse_only: bool = False) -> dict:
     """The XLA compiler options of the program compiled for a call made outside `jax.jit`, on the
-    `"cpu"` backend (elsewhere none: XLA's defaults):
+    `"cpu"` backend (elsewhere none: XLA's defaults); the sets named are
+    `hybridjax._core.xla_options`'s:
 
     - `ONE_EXECUTION_CPU` (`FAST_COMPILE_CPU` and `FEWER_COPIES_CPU`) for a call that runs one
       execution (`one_execution`, and not `batched` under `jax.vmap`) with no reverse-mode

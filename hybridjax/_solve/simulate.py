@@ -68,9 +68,8 @@ def simulate(
     time, running as fast; under `jax.vmap`, without reverse mode, with wider vectors
     (`{"xla_cpu_prefer_vector_width": 512}`; faster for a batch); either with fewer copies of
     the arrays its loops carry (`{"xla_cpu_copy_insertion_use_region_analysis": True}`; FAQ,
-    "Compile time"). Inside
-    `jax.jit` the call is traced with its
-    caller, as any JAX function, and compiled with the caller's options.
+    "Compile time"). Inside `jax.jit` the call is traced with its caller, as any JAX function,
+    and compiled with the caller's options.
 
     **Arguments:**
 
